@@ -1,0 +1,279 @@
+"""Contact math for a ball against the faces of a scene, in closed form.
+
+Between contacts the ball centre moves on ``q(tau) = p + v tau + a tau^2 / 2`` (a parabola
+in flight, a line or parabola while sliding on a face). For a face with unit outward normal
+n and offset H, the guard
+
+    G(tau) = n . q(tau) - H = G0 + G1 tau + G2 tau^2 / 2,
+    G0 = n . p - H,   G1 = n . v,   G2 = n . a,                                (1)
+
+is the signed distance of the centre from the face plane, minus nothing: H already contains
+the radius (see ``estim._scene``). The ball *enters* a face at a root of G where G is
+decreasing, ``G'(tau) = G1 + G2 tau < 0``. With ``s = sqrt(G1^2 - 2 G2 G0)`` the two roots
+have ``G' = +-s``, so the entering one is
+
+    tau = (-G1 - s) / G2 = 2 G0 / (s - G1),                                   (2)
+
+the second form being free of cancellation when G1 < 0 and also covering G2 = 0. Its
+derivatives are exactly the implicit-function event-time sensitivities,
+``d tau = -(dG0 + tau dG1 + tau^2/2 dG2) / G'(tau)``, and stay finite while s > 0. A tangent
+touch (s = 0, a grazing contact) is not an event: the ball does not cross the face.
+
+The reset at a contact with normal n keeps the model of the seed: the normal velocity is
+reversed and scaled by the coefficient of restitution e, the tangential velocity is scaled
+by mu_t,
+
+    v+ = mu_t (v - (v . n) n) - e (v . n) n.                                   (3)
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from ._scene import Scene
+
+# Positions are metres of order 1-10, so rounding is ~1e-15 m; a face counts as touched
+# within POSITION_TOL and a normal speed below SPEED_TOL counts as zero.
+POSITION_TOL = 1e-12
+SPEED_TOL = 1e-12
+# A bounce whose post-impact normal speed is below REST_SPEED ends the bounce series: the
+# remaining flights would last less than 2 REST_SPEED / g ~ 2e-10 s in all.
+REST_SPEED = 1e-9
+
+
+def face_tables(scene: Scene, radius: Float[Array, ""]):
+    """Per-face unit normal, plane offset (with the radius), and the owning box.
+
+    Returns ``(normal (F, 3), offset (F,), centre (F, 3), half (F, 3), rank (F,))``. For a
+    plane face ``half`` is infinite, so that the L1 region test of ``on_face`` always passes.
+    ``rank`` is 1 for box faces and planes, 2 for edge bevels, 3 for corner faces.
+    """
+    solid = np.asarray(scene.face_solid)
+    m = np.asarray(scene.face_direction)
+    is_box = solid < scene.n_boxes
+    box = np.where(is_box, solid, 0)
+    plane = np.where(is_box, 0, solid - scene.n_boxes)
+    norm = np.linalg.norm(m, axis=1)
+    c = scene.box_centre[box]
+    h = scene.box_half[box]
+    box_offset = (jnp.sum(m * c, axis=1) + jnp.sum(np.abs(m) * h, axis=1) + radius) / norm
+    if scene.plane_offset.shape[0]:
+        plane_offset = scene.plane_offset[plane] + radius
+        normal = jnp.where(is_box[:, None], m / norm[:, None], scene.plane_normal[plane])
+    else:
+        plane_offset = jnp.zeros(len(solid))
+        normal = jnp.asarray(m / norm[:, None])
+    offset = jnp.where(is_box, box_offset, plane_offset)
+    half = jnp.where(is_box[:, None], h, jnp.inf)
+    centre = jnp.where(is_box[:, None], c, 0.0)
+    rank = np.where(is_box, np.abs(m).sum(axis=1), 1).astype(np.int32)
+    return normal, offset, centre, half, rank
+
+
+def entering_time(
+    g0: Float[Array, "*f"], g1: Float[Array, "*f"], g2: Float[Array, "*f"]
+) -> Float[Array, "*f"]:
+    """First time tau >= 0 at which ``G0 + G1 tau + G2 tau^2/2`` enters ``G <= 0``.
+
+    Returns 0 when the ball already touches the face and moves (or is pushed) into it, and
+    ``inf`` when it never enters. Uses equation (2) of the module docstring.
+    """
+    touching = jnp.abs(g0) <= POSITION_TOL
+    pushed = (g1 < -SPEED_TOL) | ((jnp.abs(g1) <= SPEED_TOL) & (g2 < 0))
+    disc = g1 * g1 - 2.0 * g2 * g0
+    has_root = disc > 0
+    s = jnp.sqrt(jnp.where(has_root, disc, 1.0))
+    # Double where: the unused branch must not produce inf/nan that poisons gradients.
+    neg = g1 < 0
+    den_a = jnp.where(neg, s - g1, 1.0)
+    den_b = jnp.where(neg | (g2 == 0), -1.0, g2)
+    tau = jnp.where(neg, 2.0 * g0 / den_a, (-g1 - s) / den_b)
+    future = has_root & (tau > 0) & (neg | (g2 < 0))
+    return jnp.where(touching & pushed, 0.0, jnp.where(future, tau, jnp.inf))
+
+
+def ballistic(p, v, a, tau):
+    """Position and velocity after time ``tau`` under constant acceleration ``a``."""
+    return p + v * tau + 0.5 * a * tau * tau, v + a * tau
+
+
+def on_face(q, centre, half, radius) -> Bool[Array, "*f"]:
+    """Whether a point on a face's plane lies on the face: inside the grown box, eq. (1)
+    of ``estim._scene``, to within ``POSITION_TOL``."""
+    excess = jnp.maximum(jnp.abs(q - centre) - half, 0.0)
+    return jnp.sum(excess, axis=-1) <= radius + 1e-9
+
+
+def first_contact(
+    scene: Scene,
+    radius: Float[Array, ""],
+    p: Float[Array, "3"],
+    v: Float[Array, "3"],
+    a: Float[Array, "3"],
+    exclude: Int[Array, ""],
+) -> tuple[Float[Array, ""], Int[Array, ""]]:
+    """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.
+
+    ``exclude`` is a face the ball is sliding on (or -1). Faces reached at the same instant
+    (to 1e-12 s) are resolved in favour of box faces over bevels over corners, so a ball
+    landing exactly on a tread edge lands on the tread.
+    """
+    normal, offset, centre, half, rank = face_tables(scene, radius)
+    tau = entering_time(normal @ p - offset, normal @ v, normal @ a)
+    finite = jnp.isfinite(tau)
+    q, _ = ballistic(p, v, a, jnp.where(finite, tau, 0.0)[:, None])
+    ok = finite & on_face(q, centre, half, radius)
+    ok = ok & (jnp.arange(tau.shape[0]) != exclude)
+    tau = jnp.where(ok, tau, jnp.inf)
+    t_min = jnp.min(tau)
+    near = tau <= t_min + 1e-12
+    face = jnp.argmin(jnp.where(near, jnp.asarray(rank), 99)).astype(jnp.int32)
+    return t_min, jnp.where(jnp.isfinite(t_min), face, -1)
+
+
+def face_normal(scene: Scene, radius, face):
+    """Unit outward normal of face ``face`` (differentiable in nothing: normals are fixed
+    by the face direction)."""
+    normal, *_ = face_tables(scene, radius)
+    return normal[face]
+
+
+def face_entering_time(scene: Scene, radius, face, p, v, a):
+    """``entering_time`` for one face, recomputed from the state (differentiable)."""
+    normal, offset, *_ = face_tables(scene, radius)
+    n, h = normal[face], offset[face]
+    return entering_time(n @ p - h, n @ v, n @ a)
+
+
+def reset(v, n, e, mu_t):
+    """Post-impact velocity, eq. (3)."""
+    vn = jnp.dot(v, n)
+    return mu_t * (v - vn * n) - e * vn * n
+
+
+def slide_exit_time(scene: Scene, radius, face, p, v, a):
+    """Time at which a ball sliding on box face ``face`` leaves it (inf on a plane).
+
+    The face of direction m is the set of grown-box points with ``s_i (q_i - c_i) >= h_i``
+    where ``m_i = s_i != 0`` and ``|q_i - c_i| <= h_i`` elsewhere; each bound is a guard of
+    the form (1), so the exit time is the earliest ``entering_time`` among them.
+    """
+    m = jnp.asarray(np.asarray(scene.face_direction))[face]
+    solid = jnp.asarray(np.asarray(scene.face_solid))[face]
+    is_box = solid < scene.n_boxes
+    b = jnp.where(is_box, solid, 0)
+    c, h = scene.box_centre[b], scene.box_half[b]
+    q, dq, ddq = p - c, v, a
+    # Two bounds per axis, phi = sign * q + bound >= 0.
+    lower_active = (m <= 0)  # q_i >= -h_i  (m_i = 0)  or  -q_i >= h_i (m_i = -1)
+    sign_lo = jnp.where(m < 0, -1.0, 1.0)
+    bound_lo = jnp.where(m < 0, -h, h)
+    sign_hi = jnp.where(m > 0, 1.0, -1.0)
+    bound_hi = jnp.where(m > 0, -h, h)
+    t_lo = entering_time(sign_lo * q + bound_lo, sign_lo * dq, sign_lo * ddq)
+    t_hi = entering_time(sign_hi * q + bound_hi, sign_hi * dq, sign_hi * ddq)
+    t_lo = jnp.where(lower_active | (m < 0), t_lo, jnp.inf)
+    t_hi = jnp.where(m >= 0, t_hi, jnp.inf)
+    return jnp.where(is_box, jnp.minimum(jnp.min(t_lo), jnp.min(t_hi)), jnp.inf)
+
+
+def train_reach(scene: Scene, radius, face, p, u, height):
+    """How far (m) a bounce series on an upward face may travel along ``u`` undisturbed.
+
+    The flights of a series on one horizontal face all stay in the slab
+    ``zeta <= z <= zeta + height`` (zeta the centre height on the face, height the first
+    apex) above the segment from p along u. Returns the distance to the first place where
+    that slab meets another solid's box grown by r in every axis (a superset of the solid's
+    contact region, so the bound is conservative), or where the face ends; ``-1`` when the
+    slab is blocked from the start. Planes are boxes with infinite sides here.
+    """
+    solid = jnp.asarray(np.asarray(scene.face_solid))[face]
+    nb = scene.n_boxes
+    lo_box = scene.box_centre - scene.box_half - radius
+    hi_box = scene.box_centre + scene.box_half + radius
+    # A plane sigma x_k <= s, grown by r, is the box with x_k <= s + r (sigma = 1) or
+    # x_k >= -(s + r) (sigma = -1) and infinite extent along the other axes.
+    n, s = scene.plane_normal, (scene.plane_offset + radius)[:, None]
+    inf = jnp.inf
+    lo_pl = jnp.where(n < 0, -s, -inf)
+    hi_pl = jnp.where(n > 0, s, inf)
+    lo = jnp.concatenate([lo_box, lo_pl])
+    hi = jnp.concatenate([hi_box, hi_pl])
+    zeta = p[2]
+    overlap = (lo[:, 2] < zeta + height - POSITION_TOL) & (hi[:, 2] > zeta + POSITION_TOL)
+    speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
+    moving = speed > 0
+    d = jnp.where(moving, u[:2] / jnp.where(moving, speed, 1.0), 0.0)
+    # 2-D slab test of the ray p + d s, s >= 0, against every rectangle.
+    dz = d != 0
+    dd = jnp.where(dz, d, 1.0)
+    t1 = (lo[:, :2] - p[:2]) / dd
+    t2 = (hi[:, :2] - p[:2]) / dd
+    inside = (p[:2] >= lo[:, :2]) & (p[:2] <= hi[:, :2])
+    s_in = jnp.where(dz, jnp.minimum(t1, t2), jnp.where(inside, -inf, inf))
+    s_out = jnp.where(dz, jnp.maximum(t1, t2), jnp.where(inside, inf, -inf))
+    enter = jnp.maximum(jnp.max(s_in, axis=1), 0.0)
+    leave = jnp.min(s_out, axis=1)
+    hit = overlap & (enter <= leave) & (jnp.arange(lo.shape[0]) != solid)
+    obstacle = jnp.min(jnp.where(hit, enter, inf))
+    # Where the face itself ends (box top faces; planes never end).
+    is_box = solid < nb
+    b = jnp.where(is_box, solid, 0)
+    c, h = scene.box_centre[b, :2], scene.box_half[b, :2]
+    edge = jnp.where(d > 0, c + h, c - h)
+    to_edge = jnp.where(dz, (edge - p[:2]) / dd, inf)
+    exit_face = jnp.where(is_box & moving, jnp.min(to_edge), inf)
+    reach = jnp.minimum(obstacle, exit_face)
+    return jnp.where(obstacle <= POSITION_TOL, -1.0, jnp.maximum(reach, 0.0))
+
+
+def geometric_sum(q, n):
+    """``sum_{j<n} q^j = (1 - q^n) / (1 - q)`` for q in [0, 1] and real n >= 0 (n may be
+    inf), accurate and differentiable up to q = 1, where it is n (with the exact first
+    derivative n (n - 1) / 2 there)."""
+    one = q == 1.0
+    zero = q == 0.0
+    lq = jnp.log(jnp.where(one | zero, 0.5, q))
+    n_safe = jnp.where(jnp.isfinite(n), n, 1e300)
+    general = jnp.expm1(jnp.minimum(n_safe * lq, 0.0)) / jnp.expm1(lq)
+    general = jnp.where(jnp.isfinite(n), general, -1.0 / jnp.expm1(lq))
+    at_one = n_safe + 0.5 * n_safe * (n_safe - 1.0) * (q - 1.0)
+    at_zero = jnp.where(n >= 1, 1.0 + q * jnp.minimum(n - 1.0, 1.0), 0.0)
+    return jnp.where(one, jnp.where(jnp.isfinite(n), at_one, jnp.inf), jnp.where(zero, at_zero, general))
+
+
+def geometric_count(q, y):
+    """Largest whole n >= 0 with ``geometric_sum(q, n) <= y`` (inf if every n qualifies).
+
+    Not differentiated: counts are discrete. A correction step makes the result exact with
+    respect to ``geometric_sum`` itself, whatever the rounding of the logarithms.
+    """
+    q = jax.lax.stop_gradient(q)
+    y = jax.lax.stop_gradient(y)
+    lq = jnp.log(jnp.where((q > 0) & (q < 1), q, 0.5))
+    arg = 1.0 - y * (1.0 - q)
+    n_gen = jnp.where(arg > 0, jnp.floor(jnp.log(jnp.where(arg > 0, arg, 1.0)) / lq), jnp.inf)
+    n = jnp.where(q >= 1.0, jnp.floor(y), jnp.where(q <= 0.0, jnp.where(y >= 1, jnp.inf, 0.0), n_gen))
+    n = jnp.where(y < 0, -1.0, n)
+    finite = jnp.isfinite(n) & (n >= 0)
+    nf = jnp.where(finite, n, 0.0)
+    n = jnp.where(finite & (geometric_sum(q, nf + 1) <= y), nf + 1, n)
+    n = jnp.where(finite & (nf > 0) & (geometric_sum(q, nf) > y), nf - 1, n)
+    return jnp.where(y < 0, -1.0, jnp.maximum(n, 0.0))
+
+
+def safe_power(x, n):
+    """``x ** n`` for x in [0, 1] and whole n >= 0 (n may be inf), with finite gradients:
+    ``x ** 0 = 1`` and ``x ** inf = 0`` (``1`` when x = 1)."""
+    finite = jnp.isfinite(n)
+    whole = finite & (n >= 1)
+    n_safe = jnp.where(whole, n, 1.0)
+    x_pos = x > 0
+    x_safe = jnp.where(x_pos, x, 1.0)
+    # x^n = x * x^(n-1), so that d/dx at x = 0 is 1 for n = 1 and 0 beyond.
+    rest = jnp.where(x_pos, x_safe ** (n_safe - 1.0), jnp.where(n_safe == 1.0, 1.0, 0.0))
+    at_inf = jnp.where(x == 1.0, 1.0, 0.0)
+    return jnp.where(whole, x * rest, jnp.where(finite, 1.0, at_inf))

@@ -1,0 +1,303 @@
+"""Scenes: static contact geometry, gravity and ball specifications read from MJCF.
+
+A scene is what the balls bounce on. estim reads it from the MuJoCo model that also renders
+it, so the picture and the physics share one file:
+
+- every ``box`` geom becomes a solid axis-aligned box (rotations by multiples of 90 degrees
+  are accepted, any other rotation is an error naming the geom),
+- every ``plane`` geom becomes a solid half-space behind an axis-aligned plane,
+- every ``sphere`` geom on a body with a free joint becomes a ball (radius, mass, and its
+  body position as the default release point),
+- ``<option gravity>`` sets gravity, which must point along -z.
+
+Geoms that MuJoCo itself never collides (``contype="0" conaffinity="0"``) are decoration and
+are skipped, as in MuJoCo. Any other geom (meshes, capsules, static spheres, ...) is an error
+naming the geom: estim never silently ignores geometry a ball could hit.
+
+Contact faces
+-------------
+A ball of radius r touches a box when its centre reaches the box grown by r in the L1 norm,
+
+    P = { q : sum_i max(|q_i - c_i| - h_i, 0) <= r }                      (1)
+
+(c the centre, h the half sizes). P is a convex polytope with 26 faces with outward normals
+m in {-1, 0, 1}^3 \\ {0}: the 6 faces of the box moved out by r (on these the ball touches the
+box exactly as a sphere would, and the top face gives the seed's rule "the centre is over the
+tread and z - r hits the top"), 12 faces bevelling the edges at 45 degrees and 8 corner faces.
+Face m is the plane
+
+    m . (q - c) = sum_i |m_i| h_i + r                                       (2)
+
+restricted to the points of P. A face that lies inside a plane's half-space for every
+radius (the bottom of a tread standing on the ground) can never be reached and is dropped
+when the scene is built; this is exact, not an approximation.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+__all__ = ["Ball", "Scene", "load_scene"]
+
+
+class Ball(NamedTuple):
+    """A ball as the scene describes it: name, radius (m), mass (kg), release point (m)."""
+
+    name: str
+    radius: float
+    mass: float
+    position: tuple[float, float, float]
+
+
+# The 26 face directions of a box grown in the L1 norm, primary faces first: the order
+# breaks ties between faces that a ball reaches at the same instant (a ball landing exactly
+# on a tread edge lands on the tread, as in the seed).
+_DIRECTIONS = np.array(
+    sorted(
+        (m for m in itertools.product((-1, 0, 1), repeat=3) if any(m)),
+        key=lambda m: (sum(map(abs, m)), m),
+    ),
+    dtype=np.float64,
+)
+
+
+class Scene(eqx.Module):
+    """Contact geometry and gravity, plus the balls the scene defines.
+
+    Array fields are pytree leaves, so derivatives with respect to the geometry (box
+    centres and half sizes, plane offsets) flow through :func:`estim.simulate`. The face
+    table (which direction of which solid) is static.
+
+    Attributes:
+        box_centre: ``(n_boxes, 3)`` box centres (m).
+        box_half: ``(n_boxes, 3)`` box half sizes (m).
+        plane_normal: ``(n_planes, 3)`` unit outward normals (axis-aligned).
+        plane_offset: ``(n_planes,)`` the solid is ``normal . x <= offset``.
+        gravity: magnitude g (m/s^2) of gravity, which points along -z.
+        names: one name per solid, boxes first, then planes.
+        face_solid: static index of the solid each contact face belongs to.
+        face_direction: static ``(n_faces, 3)`` direction m of each face (for a plane: its
+            normal).
+        balls: the balls the scene defines.
+    """
+
+    box_centre: Float[Array, "boxes 3"]
+    box_half: Float[Array, "boxes 3"]
+    plane_normal: Float[Array, "planes 3"]
+    plane_offset: Float[Array, " planes"]
+    gravity: Float[Array, ""]
+    names: tuple[str, ...] = eqx.field(static=True)
+    face_solid: tuple[int, ...] = eqx.field(static=True)
+    face_direction: tuple[tuple[float, float, float], ...] = eqx.field(static=True)
+    balls: tuple[Ball, ...] = eqx.field(static=True, default=())
+
+    @property
+    def n_boxes(self) -> int:
+        return self.box_centre.shape[0]
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.face_solid)
+
+    def ball(self, name: str) -> Ball:
+        """The ball called ``name``; a ``KeyError`` lists the balls the scene has."""
+        for b in self.balls:
+            if b.name == name:
+                return b
+        raise KeyError(
+            f"unknown ball {name!r}: this scene has {[b.name for b in self.balls]}"
+        )
+
+    def face_label(self, face: int) -> tuple[str, str]:
+        """``(solid name, face)`` of face index ``face``, e.g. ``("step2", "+z")``."""
+        solid = self.names[self.face_solid[face]]
+        m = self.face_direction[face]
+        if self.face_solid[face] >= self.n_boxes:
+            return solid, "plane"
+        label = "".join(
+            f"{'+' if m[i] > 0 else '-'}{'xyz'[i]}" for i in range(3) if m[i] != 0
+        )
+        return solid, label
+
+    @staticmethod
+    def from_arrays(
+        boxes: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]],
+        planes: dict[str, tuple[tuple[float, float, float], float]] | None = None,
+        *,
+        gravity: float = 9.81,
+        balls: tuple[Ball, ...] = (),
+    ) -> "Scene":
+        """A scene from plain numbers.
+
+        Args:
+            boxes: ``name -> (centre, half_size)``.
+            planes: ``name -> (outward unit normal, offset)``, solid where
+                ``normal . x <= offset``; the normal must be a coordinate axis.
+            gravity: magnitude g > 0 (m/s^2); gravity points along -z.
+            balls: the balls the scene defines.
+        """
+        planes = planes or {}
+        if not boxes and not planes:
+            raise ValueError("a scene needs at least one box or plane to bounce on")
+        if not (math.isfinite(gravity) and gravity > 0):
+            raise ValueError(f"gravity must be a finite positive magnitude, got {gravity!r}")
+        centre = np.array([b[0] for b in boxes.values()], dtype=np.float64).reshape(-1, 3)
+        half = np.array([b[1] for b in boxes.values()], dtype=np.float64).reshape(-1, 3)
+        normal = np.array([p[0] for p in planes.values()], dtype=np.float64).reshape(-1, 3)
+        offset = np.array([p[1] for p in planes.values()], dtype=np.float64).reshape(-1)
+        names = tuple(boxes) + tuple(planes)
+        for name, c, h in zip(boxes, centre, half):
+            if not (np.all(np.isfinite(c)) and np.all(np.isfinite(h)) and np.all(h > 0)):
+                raise ValueError(f"box {name!r}: centre {c} and half sizes {h} must be finite, sizes > 0")
+        for name, n in zip(planes, normal):
+            if not (np.count_nonzero(n) == 1 and abs(np.abs(n).sum() - 1) < 1e-12):
+                raise ValueError(f"plane {name!r}: normal {n} must be a coordinate axis")
+        face_solid, face_direction = _faces(centre, half, normal, offset)
+        return Scene(
+            box_centre=jnp.asarray(centre),
+            box_half=jnp.asarray(half),
+            plane_normal=jnp.asarray(normal),
+            plane_offset=jnp.asarray(offset),
+            gravity=jnp.asarray(float(gravity)),
+            names=names,
+            face_solid=face_solid,
+            face_direction=face_direction,
+            balls=tuple(balls),
+        )
+
+
+def _faces(centre, half, normal, offset):
+    """Static face table: every reachable face of every box, then one face per plane.
+
+    Face m of box b is unreachable when, for every radius r >= 0, it lies inside the
+    grown half-space ``n . x <= s + r`` of some plane. The face's points are box points of
+    the box face F_m plus at most r in any direction, so this holds iff
+    ``max_{x in F_m} n . x <= s`` (the r terms cancel because |n . d| <= r for d in the
+    L1 ball of radius r).
+    """
+    face_solid, face_direction = [], []
+    for b in range(centre.shape[0]):
+        for m in _DIRECTIONS:
+            # F_m: the box points maximising m . x; its extreme value along a plane normal n
+            # picks, per axis, the face coordinate where m_i != 0 and the best end otherwise.
+            covered = False
+            for n, s in zip(normal, offset):
+                top = 0.0
+                for i in range(3):
+                    if m[i] != 0:
+                        top += n[i] * (centre[b, i] + m[i] * half[b, i])
+                    else:
+                        top += n[i] * centre[b, i] + abs(n[i]) * half[b, i]
+                if top <= s + 1e-12:
+                    covered = True
+                    break
+            if not covered:
+                face_solid.append(b)
+                face_direction.append(tuple(float(v) for v in m))
+    for p in range(normal.shape[0]):
+        face_solid.append(centre.shape[0] + p)
+        face_direction.append(tuple(float(v) for v in normal[p]))
+    return tuple(face_solid), tuple(face_direction)
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read a scene from an MJCF file (see the module docstring for what is read).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: MuJoCo cannot compile it, or it holds geometry estim cannot simulate
+            exactly (the message names the geom).
+    """
+    import mujoco
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"scene file not found: {path}")
+    try:
+        model = mujoco.MjModel.from_xml_path(path)
+    except Exception as err:  # mujoco raises ValueError with its own parser message
+        raise ValueError(f"{path}: MuJoCo could not load this MJCF file: {err}") from None
+    return scene_from_model(model, source=path)
+
+
+def scene_from_model(model, *, source: str = "<model>") -> Scene:
+    """Build a :class:`Scene` from a compiled ``mujoco.MjModel``."""
+    import mujoco
+
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    gx, gy, gz = (float(v) for v in model.opt.gravity)
+    if gx != 0.0 or gy != 0.0 or not gz < 0.0:
+        raise ValueError(
+            f"{source}: gravity {model.opt.gravity.tolist()} must point along -z "
+            "(estim's contact model assumes horizontal treads under vertical gravity)"
+        )
+    air = {
+        "density": float(model.opt.density),
+        "viscosity": float(model.opt.viscosity),
+        "wind": model.opt.wind.tolist(),
+    }
+    if air["density"] != 0 or air["viscosity"] != 0 or any(air["wind"]):
+        raise ValueError(
+            f"{source}: <option density/viscosity/wind> ({air}) asks for air drag, which "
+            "this version of estim does not simulate; remove them for the exact "
+            "gravity-only model"
+        )
+    free_bodies = {
+        int(model.jnt_bodyid[j])
+        for j in range(model.njnt)
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
+    }
+    boxes, planes, balls = {}, {}, []
+    for g in range(model.ngeom):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
+        body = int(model.geom_bodyid[g])
+        kind = int(model.geom_type[g])
+        if kind == mujoco.mjtGeom.mjGEOM_SPHERE and body in free_bodies:
+            body_name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or name
+            pos = tuple(float(v) for v in data.xpos[body])
+            balls.append(
+                Ball(body_name, float(model.geom_size[g, 0]), float(model.body_mass[body]), pos)
+            )
+            continue
+        if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0:
+            continue  # visual only, exactly as in MuJoCo
+        if body in free_bodies or model.body_dofnum[body] > 0:
+            raise ValueError(f"{source}: geom {name!r} moves (it is on a body with joints); "
+                             "contact surfaces must be static")
+        rot = data.geom_xmat[g].reshape(3, 3)
+        if kind == mujoco.mjtGeom.mjGEOM_BOX:
+            perm = np.abs(rot)
+            if not np.allclose(perm, np.round(perm), atol=1e-9):
+                raise ValueError(
+                    f"{source}: box {name!r} is rotated; estim supports axis-aligned boxes "
+                    "(rotations by multiples of 90 degrees) only"
+                )
+            half = np.round(perm) @ model.geom_size[g]
+            boxes[name] = (tuple(data.geom_xpos[g]), tuple(half))
+        elif kind == mujoco.mjtGeom.mjGEOM_PLANE:
+            n = rot[:, 2]
+            if not np.allclose(np.abs(n), np.round(np.abs(n)), atol=1e-9):
+                raise ValueError(
+                    f"{source}: plane {name!r} has normal {n.round(6).tolist()}; estim "
+                    "supports planes whose normal is a coordinate axis only"
+                )
+            n = np.round(n)
+            planes[name] = (tuple(n), float(n @ data.geom_xpos[g]))
+        else:
+            kind_name = mujoco.mjtGeom(kind).name.removeprefix("mjGEOM_").lower()
+            raise ValueError(
+                f"{source}: geom {name!r} is a {kind_name}; estim's contact surfaces are "
+                "boxes and planes, and its balls are spheres on free bodies"
+            )
+    if not boxes and not planes:
+        raise ValueError(f"{source}: the scene has no contact surfaces (box or plane geoms)")
+    return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls))

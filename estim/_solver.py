@@ -1,0 +1,305 @@
+"""The exact event-driven solver for scenes where only gravity acts.
+
+The motion of a ball is a sequence of *segments*, each in closed form:
+
+- ``FLIGHT``: a parabola ``p + v tau + a tau^2 / 2`` ending at a contact or at ``t_end``;
+- ``TRAIN``: a whole series of bounces on one horizontal face. After a bounce with
+  post-impact horizontal velocity u and vertical speed w, flight j lasts ``T0 e^j``
+  (``T0 = 2 w / g``) and carries horizontal velocity ``u mu^j``, so bounce n happens at
+
+      t_n = t_0 + T0 (1 - e^n) / (1 - e),   x_n = x_0 + u T0 (1 - (e mu)^n) / (1 - e mu).   (1)
+
+  For e < 1 the series accumulates at ``t_0 + T0 / (1 - e)`` (Zeno): infinitely many
+  bounces in finite time, summed exactly. A train continues as long as the ball provably
+  lands on the same face with nothing in the way (``estim._contact.train_reach``);
+- ``SLIDE``: motion along a face after the bounces have died out (a ball at rest is a
+  slide with zero velocity); it ends where the ball slides off the face, at a wall, or at
+  ``t_end``.
+
+So the number of segments is bounded by the number of faces a ball visits, not by the
+number of bounces, and compute stays bounded for every e, including e = 0 and e = 1.
+
+Two passes keep this exact *and* differentiable:
+
+1. ``plan`` (a ``lax.while_loop`` on values with gradients stopped) finds the discrete
+   structure: the kind of each segment, the face it ends on, how many bounces a train has.
+2. ``replay`` (a ``lax.scan``) recomputes every segment from the structure with
+   differentiable closed forms. Its derivatives are the event-time sensitivities of the
+   hybrid system (the implicit-function derivative of each contact time, composed with the
+   reset maps), exact for the given sequence of contacts.
+
+Both passes call the same ``advance`` function, so they agree to the last bit.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from ._contact import (
+    REST_SPEED,
+    ballistic,
+    face_entering_time,
+    face_normal,
+    first_contact,
+    geometric_count,
+    geometric_sum,
+    reset,
+    safe_power,
+    slide_exit_time,
+    train_reach,
+)
+from ._scene import Scene
+
+# Segment kinds.
+FLIGHT, TRAIN, SLIDE, UNUSED = 0, 1, 2, 3
+# Why a segment ends.
+END, CONTACT, EXIT, BOUNCES, SETTLE = 0, 1, 2, 3, 4
+
+
+class Decision(eqx.Module):
+    """The discrete structure of one segment (found by ``plan``)."""
+
+    kind: Int[Array, ""]
+    support: Int[Array, ""]  # face slid or bounced on (TRAIN, SLIDE), else -1
+    n: Float[Array, ""]  # bounces in a TRAIN (inf for a Zeno train)
+    reason: Int[Array, ""]  # END, CONTACT, EXIT, BOUNCES or SETTLE
+    face: Int[Array, ""]  # face hit at a CONTACT, else -1
+
+
+class Segment(eqx.Module):
+    """One segment in closed form: its start state and acceleration, its end state."""
+
+    t0: Float[Array, ""]
+    p0: Float[Array, "3"]
+    v0: Float[Array, "3"]
+    acc: Float[Array, "3"]
+    t1: Float[Array, ""]
+    p1: Float[Array, "3"]
+    v1: Float[Array, "3"]  # just before the end (pre-impact at a contact)
+    v1_post: Float[Array, "3"]  # just after the end (post-impact at a contact)
+
+
+def contact_velocity(v, n, a, e, mu_t):
+    """Velocity after touching a face of normal n (eq. (3) of ``estim._contact``).
+
+    Touching with a normal speed below ``REST_SPEED`` is not an impact: the normal
+    component is dropped and nothing else changes. An impact whose rebound is below
+    ``REST_SPEED`` on a face that supports the ball ends a bounce series; it stands for the
+    limit of infinitely many vanishing bounces, each scaling the tangential velocity by
+    mu_t, so the ball keeps its tangential velocity only if mu_t = 1 (this makes e = 0 the
+    limit of e -> 0: the ball sticks where it lands).
+    """
+    vn = jnp.dot(v, n)
+    tangential = v - vn * n
+    impact = -vn > REST_SPEED
+    bounced = reset(v, n, e, mu_t)
+    settles = (e * -vn <= REST_SPEED) & (jnp.dot(n, a) < 0)
+    kept = jnp.where(mu_t == 1.0, 1.0, 0.0)
+    return jnp.where(impact, jnp.where(settles, tangential * kept, bounced), tangential)
+
+
+def _slide_frame(scene, radius, support, v, a):
+    """Velocity and acceleration of a ball sliding on face ``support``."""
+    n = face_normal(scene, radius, jnp.maximum(support, 0))
+    return v - jnp.dot(v, n) * n, a - jnp.dot(a, n) * n
+
+
+def train_state(v0, tau_j, j, e, mu_t, g):
+    """Offsets of the state in flight j of a train, ``tau_j`` after bounce j (eq. (1)).
+
+    Returns (horizontal travel since the train began, height above the face, velocity).
+    """
+    w = v0[2]
+    u = v0.at[2].set(0.0)
+    t_flight = 2.0 * w / g
+    ej, mj = safe_power(e, j), safe_power(mu_t, j)
+    travel = u * t_flight * geometric_sum(e * mu_t, j) + u * mj * tau_j
+    height = w * ej * tau_j - 0.5 * g * tau_j**2
+    vel = (u * mj).at[2].set(w * ej - g * tau_j)
+    return travel, height, vel
+
+
+def train_end(v0, n, e, mu_t, g):
+    """Duration, travel and final velocity of a train of n bounces (n may be inf)."""
+    w = v0[2]
+    u = v0.at[2].set(0.0)
+    t_flight = 2.0 * w / g
+    duration = t_flight * geometric_sum(e, n)
+    travel = u * t_flight * geometric_sum(e * mu_t, jnp.where(jnp.isfinite(duration), n, 0.0))
+    vel = (u * safe_power(mu_t, n)).at[2].set(jnp.where(jnp.isfinite(n), w * safe_power(e, n), 0.0))
+    return duration, travel, vel
+
+
+def advance(scene: Scene, params, t, p, v, d: Decision, t_end) -> Segment:
+    """Carry the state (t, p, v) through one segment with structure ``d``."""
+    e, mu_t, radius = params.e, params.mu_t, params.radius
+    g = scene.gravity
+    a = jnp.array([0.0, 0.0, -1.0]) * g
+    slide_v, slide_a = _slide_frame(scene, radius, d.support, v, a)
+    sliding = d.kind == SLIDE
+    v0 = jnp.where(sliding, slide_v, v)
+    acc = jnp.where(sliding, slide_a, a)
+    face = jnp.maximum(d.face, 0)
+
+    # FLIGHT and SLIDE: ballistic motion to a contact, a slide exit, or t_end.
+    tau_contact = face_entering_time(scene, radius, face, p, v0, acc)
+    tau_exit = slide_exit_time(scene, radius, jnp.maximum(d.support, 0), p, v0, acc)
+    tau_b = jnp.where(d.reason == CONTACT, tau_contact, jnp.where(d.reason == EXIT, tau_exit, t_end - t))
+    tau_b = jnp.where(jnp.isfinite(tau_b), tau_b, 0.0)
+    p_b, v_b = ballistic(p, v0, acc, tau_b)
+    n_face = face_normal(scene, radius, face)
+    v_b_post = jnp.where(d.reason == CONTACT, contact_velocity(v_b, n_face, a, e, mu_t), v_b)
+
+    # TRAIN: a closed-form series of bounces, to bounce n, to its accumulation, or to t_end.
+    is_train = d.kind == TRAIN
+    v_tr = jnp.where(is_train, v, jnp.array([0.0, 0.0, 1.0]))  # keep w > 0 off-branch
+    n_tr = jnp.where(is_train, d.n, 1.0)
+    duration, travel, v_full = train_end(v_tr, n_tr, e, mu_t, g)
+    at_end = d.reason == END
+    tau_t = jnp.where(at_end, t_end - t, jnp.where(jnp.isfinite(duration), duration, 0.0))
+    t_flight = 2.0 * v_tr[2] / g
+    j = jnp.minimum(geometric_count(e, tau_t / t_flight), jnp.where(jnp.isfinite(n_tr), n_tr, 1e6))
+    j = jnp.minimum(j, 1e6)
+    tau_j = tau_t - t_flight * geometric_sum(e, j)
+    tr_travel, tr_height, tr_vel = train_state(v_tr, tau_j, j, e, mu_t, g)
+    p_tr = jnp.where(at_end, p + tr_travel + jnp.array([0.0, 0.0, 1.0]) * tr_height, p + travel)
+    v_tr_end = jnp.where(at_end, tr_vel, v_full)
+    if_zeno_settles = jnp.where(mu_t == 1.0, 1.0, 0.0)
+    v_tr_end = jnp.where(d.reason == SETTLE, v_tr_end * if_zeno_settles, v_tr_end)
+
+    tau = jnp.where(is_train, tau_t, tau_b)
+    unused = d.kind == UNUSED
+    p1 = jnp.where(unused, p, jnp.where(is_train, p_tr, p_b))
+    v1 = jnp.where(unused, v, jnp.where(is_train, v_tr_end, v_b))
+    v1_post = jnp.where(unused, v, jnp.where(is_train, v_tr_end, v_b_post))
+    t1 = jnp.where(unused, t, t + tau)
+    return Segment(t, p, v0, acc, t1, p1, v1, v1_post)
+
+
+def _next_structure(scene, params, seg: Segment, d: Decision):
+    """Kind, support and bounce count of the segment that follows ``seg``."""
+    e, mu_t, radius = params.e, params.mu_t, params.radius
+    g = scene.gravity
+    a = jnp.array([0.0, 0.0, -1.0]) * g
+    face = jnp.maximum(d.face, 0)
+    n_face = face_normal(scene, radius, face)
+    post = seg.v1_post
+    settled = (jnp.abs(jnp.dot(post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, a) < 0)
+    up = n_face[2] > 1.0 - 1e-12
+    # A bounce series on an upward face: how many bounces provably land on it.
+    w = post[2]
+    u = post.at[2].set(0.0)
+    t_flight = 2.0 * w / g
+    reach = train_reach(scene, radius, face, seg.p1, u, w * w / (2.0 * g))
+    speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
+    y = jnp.where(speed > 0, reach / jnp.where(speed > 0, speed * t_flight, 1.0), jnp.inf)
+    n_train = jnp.where(reach < 0, 0.0, geometric_count(e * mu_t, y))
+    # A wall hit while sliding keeps the ball on its face.
+    if_support = face_normal(scene, radius, jnp.maximum(d.support, 0))
+    stays = (d.kind == SLIDE) & (jnp.abs(jnp.dot(n_face, if_support)) < 1e-12)
+
+    after_contact_kind = jnp.where(
+        stays | settled, SLIDE, jnp.where(up & (n_train >= 1), TRAIN, FLIGHT)
+    )
+    after_contact_support = jnp.where(stays, d.support, face)
+    kind = jnp.select(
+        [d.reason == CONTACT, d.reason == SETTLE, d.reason == END],
+        [after_contact_kind, SLIDE, UNUSED],
+        FLIGHT,
+    )
+    support = jnp.select(
+        [d.reason == CONTACT, d.reason == SETTLE], [after_contact_support, d.support], -1
+    )
+    support = jnp.where((kind == TRAIN) | (kind == SLIDE), support, -1)
+    n = jnp.where(kind == TRAIN, n_train, 0.0)
+    return kind.astype(jnp.int32), support.astype(jnp.int32), n
+
+
+def _decide_end(scene, params, t, p, v, kind, support, n, t_end):
+    """How the segment starting at (t, p, v) ends: ``(reason, face)``."""
+    e, mu_t, radius = params.e, params.mu_t, params.radius
+    g = scene.gravity
+    a = jnp.array([0.0, 0.0, -1.0]) * g
+    slide_v, slide_a = _slide_frame(scene, radius, support, v, a)
+    sliding = kind == SLIDE
+    v0 = jnp.where(sliding, slide_v, v)
+    acc = jnp.where(sliding, slide_a, a)
+    tau_c, face = first_contact(scene, radius, p, v0, acc, jnp.where(sliding, support, -1))
+    tau_x = jnp.where(sliding, slide_exit_time(scene, radius, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
+    tau_b = jnp.minimum(tau_c, tau_x)
+    reason_b = jnp.where(t + tau_b >= t_end, END, jnp.where(tau_c <= tau_x, CONTACT, EXIT))
+    face_b = jnp.where(reason_b == CONTACT, face, -1)
+    duration, _, _ = train_end(jnp.where(kind == TRAIN, v, jnp.array([0.0, 0.0, 1.0])), jnp.where(kind == TRAIN, n, 1.0), e, mu_t, g)
+    reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
+    is_train = kind == TRAIN
+    reason = jnp.where(is_train, reason_t, reason_b)
+    face = jnp.where(is_train, -1, face_b)
+    return reason.astype(jnp.int32), face.astype(jnp.int32)
+
+
+class Plan(eqx.Module):
+    """Discrete structure of a whole solution: one ``Decision`` per segment slot."""
+
+    decisions: Decision  # each field has a leading axis of length max_segments
+    n_segments: Int[Array, ""]
+    complete: Array  # bool: reached t_end within max_segments
+
+
+def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
+    """Find the discrete structure (no gradients flow through this pass)."""
+    scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
+    S = max_segments
+
+    def empty(dtype, fill):
+        return jnp.full((S,), fill, dtype)
+
+    buffers = Decision(
+        kind=empty(jnp.int32, UNUSED),
+        support=empty(jnp.int32, -1),
+        n=empty(jnp.float64, 0.0),
+        reason=empty(jnp.int32, END),
+        face=empty(jnp.int32, -1),
+    )
+    init = (
+        jnp.int32(0),
+        jnp.asarray(0.0),
+        params.position,
+        params.velocity,
+        jnp.int32(FLIGHT),
+        jnp.int32(-1),
+        jnp.asarray(0.0),
+        jnp.bool_(False),
+        buffers,
+    )
+
+    def cond(carry):
+        k, *_, done, _ = carry
+        return (~done) & (k < S)
+
+    def body(carry):
+        k, t, p, v, kind, support, n, _, buf = carry
+        reason, face = _decide_end(scene, params, t, p, v, kind, support, n, t_end)
+        d = Decision(kind, support, n, reason, face)
+        seg = advance(scene, params, t, p, v, d, t_end)
+        kind2, support2, n2 = _next_structure(scene, params, seg, d)
+        buf = jax.tree.map(lambda b, x: b.at[k].set(x), buf, d)
+        return (k + 1, seg.t1, seg.p1, seg.v1_post, kind2, support2, n2, reason == END, buf)
+
+    k, *_, done, buf = jax.lax.while_loop(cond, body, init)
+    return Plan(decisions=buf, n_segments=k, complete=done)
+
+
+def replay(scene: Scene, params, t_end, decisions: Decision) -> Segment:
+    """Recompute every segment from the structure, differentiably (``lax.scan``)."""
+
+    def step(state, d):
+        t, p, v = state
+        seg = advance(scene, params, t, p, v, d, t_end)
+        return (seg.t1, seg.p1, seg.v1_post), seg
+
+    init = (jnp.zeros_like(params.e), params.position, params.velocity)
+    _, segments = jax.lax.scan(step, init, decisions)
+    return segments

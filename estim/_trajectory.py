@@ -1,0 +1,181 @@
+"""The trajectory type: sampled states, contact events, final state, exact dense output."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ._contact import REST_SPEED, geometric_count, geometric_sum, safe_power
+from ._solver import CONTACT, SETTLE, TRAIN, UNUSED, Decision, Segment, train_state
+
+# Event kinds.
+IMPACT, REST = 0, 1
+EVENT_KINDS = ("impact", "settle")
+# Bounces of a Zeno series whose flight is shorter than this are summed, not listed.
+LISTED_FLIGHT = 1e-6
+
+
+class State(eqx.Module):
+    """Time, centre position and velocity of a ball."""
+
+    t: Float[Array, "*batch"]
+    position: Float[Array, "*batch 3"]
+    velocity: Float[Array, "*batch 3"]
+
+
+class Events(eqx.Module):
+    """Contact events in time order, padded to ``max_events``.
+
+    Attributes:
+        t: event times (s); padding is ``inf``.
+        position: ball centre at the event (m).
+        velocity_pre, velocity_post: velocity just before and just after (m/s).
+        face: index of the face touched (``Scene.face_label`` names it); padding -1.
+        kind: ``IMPACT`` (0) for a bounce; ``REST`` (1) where a bounce series ends (Zeno
+            accumulation) or the ball lands without normal speed, after which it rests or
+            slides on the face.
+        count: number of listed events.
+        truncated: more events happened than ``max_events`` could hold.
+    """
+
+    t: Float[Array, "*batch events"]
+    position: Float[Array, "*batch events 3"]
+    velocity_pre: Float[Array, "*batch events 3"]
+    velocity_post: Float[Array, "*batch events 3"]
+    face: Int[Array, "*batch events"]
+    kind: Int[Array, "*batch events"]
+    count: Int[Array, "*batch"]
+    truncated: Bool[Array, "*batch"]
+
+
+class Trajectory(eqx.Module):
+    """What :func:`estim.simulate` returns.
+
+    Attributes:
+        ts: the requested sample times, shape ``(times,)``.
+        position, velocity: the state at ``ts``, shape ``(*batch, times, 3)``.
+        events: every contact event (see :class:`Events`).
+        final: the state at ``t_end``.
+        segments: the exact piecewise closed-form solution; ``evaluate`` samples it.
+        structure: the discrete structure (kinds, faces, bounce counts) of the segments.
+        e, mu_t, gravity: what the closed forms of the segments need.
+        complete: whether ``t_end`` was reached within ``max_segments``.
+    """
+
+    ts: Float[Array, " times"]
+    position: Float[Array, "*batch times 3"]
+    velocity: Float[Array, "*batch times 3"]
+    events: Events
+    final: State
+    segments: Segment
+    structure: Decision
+    e: Float[Array, "*batch"]
+    mu_t: Float[Array, "*batch"]
+    gravity: Float[Array, ""]
+    complete: Bool[Array, "*batch"]
+
+    def evaluate(self, t: Float[Array, "*times"]) -> tuple[Array, Array]:
+        """Exact position and velocity at times ``t`` (any shape), for every ball."""
+        batch = self.e.shape
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), self.segments)
+        flat_d = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), self.structure)
+        e, mu_t = self.e.reshape(-1), self.mu_t.reshape(-1)
+        fn = jax.vmap(lambda s, d, e_, m_: sample(s, d, e_, m_, self.gravity, t))
+        p, v = fn(flat, flat_d, e, mu_t)
+        return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
+
+
+def sample(seg: Segment, d: Decision, e, mu_t, g, t):
+    """Position and velocity of one ball at times ``t`` from its segments."""
+    shape = jnp.shape(t)
+    t = jnp.reshape(t, (-1,))
+    starts = jnp.where(d.kind != UNUSED, seg.t0, jnp.inf)
+    k = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
+    s = jax.tree.map(lambda x: x[k], seg)
+    kind, n = d.kind[k], d.n[k]
+    tau = t - s.t0
+    p_bal = s.p0 + s.v0 * tau[:, None] + 0.5 * s.acc * tau[:, None] ** 2
+    v_bal = s.v0 + s.acc * tau[:, None]
+
+    def in_train(v0, tau, n):
+        is_train = v0[2] > 0
+        v0 = jnp.where(is_train, v0, jnp.array([0.0, 0.0, 1.0]))
+        t_flight = 2.0 * v0[2] / g
+        j = geometric_count(e, tau / t_flight)
+        j = jnp.minimum(jnp.minimum(j, jnp.where(jnp.isfinite(n), n, 1e6)), 1e6)
+        tau_j = tau - t_flight * geometric_sum(e, j)
+        travel, height, vel = train_state(v0, tau_j, j, e, mu_t, g)
+        return travel + jnp.array([0.0, 0.0, 1.0]) * height, vel
+
+    dp, v_tr = jax.vmap(in_train)(jnp.where((kind == TRAIN)[:, None], s.v0, 0.0), tau, n)
+    is_train = (kind == TRAIN)[:, None]
+    p = jnp.where(is_train, s.p0 + dp, p_bal)
+    v = jnp.where(is_train, v_tr, v_bal)
+    return p.reshape(shape + (3,)), v.reshape(shape + (3,))
+
+
+def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Events:
+    """Expand the segments of one ball into its list of contact events."""
+    is_train = d.kind == TRAIN
+    contact = (d.reason == CONTACT) & (d.kind != UNUSED)
+    w = jnp.where(is_train, seg.v0[:, 2], 1.0)
+    t_flight = 2.0 * w / g
+    # Bounces of a train up to its end (t_end, bounce n, or its accumulation) ...
+    before_end = geometric_count(e, (seg.t1 - seg.t0) / t_flight)
+    bounces = jnp.minimum(before_end, d.n)
+    # ... but of a Zeno series only those whose flight lasts at least LISTED_FLIGHT.
+    le = jnp.log(jnp.where((e > 0) & (e < 1), e, 0.5))
+    ratio = jnp.log(LISTED_FLIGHT / t_flight)
+    listable = jnp.where(t_flight >= LISTED_FLIGHT, jnp.floor(ratio / le) + 1.0, 0.0)
+    listable = jnp.where((e > 0) & (e < 1), listable, jnp.where(e == 0, 0.0, jnp.inf))
+    bounces = jnp.where(jnp.isfinite(d.n), bounces, jnp.minimum(bounces, listable))
+    settles = is_train & (d.reason == SETTLE)
+    n_train = jnp.where(is_train, bounces, 0.0) + settles
+    total = jnp.where(contact, 1.0, n_train)
+    # Slots are int32 indices; a count past max_events only marks the list truncated.
+    capped = jnp.minimum(total, max_events + 1.0)
+    ends = jnp.cumsum(capped)
+    starts = ends - capped
+    i = jnp.arange(max_events, dtype=jnp.float64)
+    k = jnp.clip(jnp.searchsorted(ends, i, side="right"), 0, ends.shape[0] - 1)
+    valid = i < ends[-1]
+    local = i - starts[k] + 1.0  # bounce number within a train, from 1
+    s = jax.tree.map(lambda x: x[k], seg)
+    dk = jax.tree.map(lambda x: x[k], d)
+    train_slot = dk.kind == TRAIN
+    settle_slot = train_slot & (dk.reason == SETTLE) & (local > bounces[k])
+
+    def bounce(v0, t0, p0, j):
+        v0 = jnp.where(v0[2] > 0, v0, jnp.array([0.0, 0.0, 1.0]))
+        tf = 2.0 * v0[2] / g
+        u = v0.at[2].set(0.0)
+        t = t0 + tf * geometric_sum(e, j)
+        pos = p0 + u * tf * geometric_sum(e * mu_t, j)
+        pre = (u * safe_power(mu_t, j - 1.0)).at[2].set(-v0[2] * safe_power(e, j - 1.0))
+        post = (u * safe_power(mu_t, j)).at[2].set(v0[2] * safe_power(e, j))
+        return t, pos, pre, post
+
+    jj = jnp.where(train_slot & ~settle_slot, local, 1.0)
+    bt, bp, bpre, bpost = jax.vmap(bounce)(s.v0, s.t0, s.p0, jj)
+    plain = ~train_slot | settle_slot
+    t = jnp.where(plain, s.t1, bt)
+    pos = jnp.where(plain[:, None], s.p1, bp)
+    pre = jnp.where(plain[:, None], s.v1, bpre)
+    post = jnp.where(plain[:, None], s.v1_post, bpost)
+    face = jnp.where(train_slot, dk.support, dk.face)
+    # A contact without normal speed is a landing to rest, not an impact: an impact changes
+    # the velocity by at least (1 + e) times the normal speed.
+    kind = jnp.where(settle_slot | (jnp.linalg.norm(pre - post, axis=1) <= REST_SPEED), REST, IMPACT)
+    zero = jnp.zeros_like(pos)
+    return Events(
+        t=jnp.where(valid, t, jnp.inf),
+        position=jnp.where(valid[:, None], pos, zero),
+        velocity_pre=jnp.where(valid[:, None], pre, zero),
+        velocity_post=jnp.where(valid[:, None], post, zero),
+        face=jnp.where(valid, face, -1).astype(jnp.int32),
+        kind=jnp.where(valid, kind, -1).astype(jnp.int32),
+        count=jnp.minimum(ends[-1], max_events).astype(jnp.int32),
+        truncated=ends[-1] > max_events,
+    )
