@@ -9,6 +9,8 @@ from ._params import Params as Params
 from ._scene import Ball as Ball
 from ._scene import Scene as Scene
 from ._scene import load_scene as load_scene
+from ._sensitivity import EventSensitivity as EventSensitivity
+from ._sensitivity import event_sensitivities as event_sensitivities
 from ._simulate import simulate as simulate
 from ._trajectory import Events as Events
 from ._trajectory import State as State

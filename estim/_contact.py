@@ -110,9 +110,9 @@ def on_face(q, centre, half, radius) -> Bool[Array, "*f"]:
 def first_contact(
     scene: Scene,
     radius: Float[Array, ""],
-    p: Float[Array, "3"],
-    v: Float[Array, "3"],
-    a: Float[Array, "3"],
+    p: Float[Array, 3],
+    v: Float[Array, 3],
+    a: Float[Array, 3],
     exclude: Int[Array, ""],
 ) -> tuple[Float[Array, ""], Int[Array, ""]]:
     """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.

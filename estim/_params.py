@@ -83,7 +83,7 @@ class Params(eqx.Module):
         mu_t,
         velocity=(0.0, 0.0, 0.0),
         position=None,
-    ) -> "Params":
+    ) -> Params:
         """Parameters of the scene's ball ``ball`` (radius from the scene); the release
         position defaults to the ball's position in the scene file."""
         spec = scene.ball(ball)

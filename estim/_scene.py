@@ -134,7 +134,7 @@ class Scene(eqx.Module):
         *,
         gravity: float = 9.81,
         balls: tuple[Ball, ...] = (),
-    ) -> "Scene":
+    ) -> Scene:
         """A scene from plain numbers.
 
         Args:
@@ -154,10 +154,10 @@ class Scene(eqx.Module):
         normal = np.array([p[0] for p in planes.values()], dtype=np.float64).reshape(-1, 3)
         offset = np.array([p[1] for p in planes.values()], dtype=np.float64).reshape(-1)
         names = tuple(boxes) + tuple(planes)
-        for name, c, h in zip(boxes, centre, half):
+        for name, c, h in zip(boxes, centre, half, strict=True):
             if not (np.all(np.isfinite(c)) and np.all(np.isfinite(h)) and np.all(h > 0)):
                 raise ValueError(f"box {name!r}: centre {c} and half sizes {h} must be finite, sizes > 0")
-        for name, n in zip(planes, normal):
+        for name, n in zip(planes, normal, strict=True):
             if not (np.count_nonzero(n) == 1 and abs(np.abs(n).sum() - 1) < 1e-12):
                 raise ValueError(f"plane {name!r}: normal {n} must be a coordinate axis")
         face_solid, face_direction = _faces(centre, half, normal, offset)
@@ -189,7 +189,7 @@ def _faces(centre, half, normal, offset):
             # F_m: the box points maximising m . x; its extreme value along a plane normal n
             # picks, per axis, the face coordinate where m_i != 0 and the best end otherwise.
             covered = False
-            for n, s in zip(normal, offset):
+            for n, s in zip(normal, offset, strict=True):
                 top = 0.0
                 for i in range(3):
                     if m[i] != 0:

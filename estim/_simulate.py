@@ -6,13 +6,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import ArrayLike, Float
 
 from ._config import require_x64
 from ._params import Params, check_runtime, check_t_end
 from ._scene import Scene
-from ._solver import plan, replay
-from ._trajectory import Events, State, Trajectory, list_events, sample
+from ._solver import plan, segments_of
+from ._trajectory import State, Trajectory, list_events, sample
 
 __all__ = ["simulate"]
 
@@ -93,7 +93,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, throw):
 
     def one(prm):
         pl = plan(scene, prm, t_end, max_segments)
-        segments = replay(scene, prm, t_end, pl.decisions)
+        segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments)
         pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, scene.gravity, ts)
         events = list_events(segments, pl.decisions, prm.e, prm.mu_t, scene.gravity, max_events)
         last = jnp.maximum(pl.n_segments - 1, 0)

@@ -73,13 +73,13 @@ class Segment(eqx.Module):
     """One segment in closed form: its start state and acceleration, its end state."""
 
     t0: Float[Array, ""]
-    p0: Float[Array, "3"]
-    v0: Float[Array, "3"]
-    acc: Float[Array, "3"]
+    p0: Float[Array, 3]
+    v0: Float[Array, 3]
+    acc: Float[Array, 3]
     t1: Float[Array, ""]
-    p1: Float[Array, "3"]
-    v1: Float[Array, "3"]  # just before the end (pre-impact at a contact)
-    v1_post: Float[Array, "3"]  # just after the end (post-impact at a contact)
+    p1: Float[Array, 3]
+    v1: Float[Array, 3]  # just before the end (pre-impact at a contact)
+    v1_post: Float[Array, 3]  # just after the end (post-impact at a contact)
 
 
 def contact_velocity(v, n, a, e, mu_t):
@@ -241,9 +241,10 @@ def _decide_end(scene, params, t, p, v, kind, support, n, t_end):
 
 
 class Plan(eqx.Module):
-    """Discrete structure of a whole solution: one ``Decision`` per segment slot."""
+    """Discrete structure of a whole solution, and its segments (values, no gradients)."""
 
     decisions: Decision  # each field has a leading axis of length max_segments
+    segments: Segment  # likewise
     n_segments: Int[Array, ""]
     complete: Array  # bool: reached t_end within max_segments
 
@@ -252,20 +253,13 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """Find the discrete structure (no gradients flow through this pass)."""
     scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
     S = max_segments
-
-    def empty(dtype, fill):
-        return jnp.full((S,), fill, dtype)
-
-    buffers = Decision(
-        kind=empty(jnp.int32, UNUSED),
-        support=empty(jnp.int32, -1),
-        n=empty(jnp.float64, 0.0),
-        reason=empty(jnp.int32, END),
-        face=empty(jnp.int32, -1),
-    )
+    t0 = jnp.zeros_like(params.e)
+    d0 = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.asarray(0.0), jnp.int32(END), jnp.int32(-1))
+    s0 = advance(scene, params, t0, params.position, params.velocity, d0, t_end)
+    buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), (d0, s0))
     init = (
         jnp.int32(0),
-        jnp.asarray(0.0),
+        t0,
         params.position,
         params.velocity,
         jnp.int32(FLIGHT),
@@ -285,11 +279,18 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
         d = Decision(kind, support, n, reason, face)
         seg = advance(scene, params, t, p, v, d, t_end)
         kind2, support2, n2 = _next_structure(scene, params, seg, d)
-        buf = jax.tree.map(lambda b, x: b.at[k].set(x), buf, d)
+        buf = jax.tree.map(lambda b, x: b.at[k].set(x), buf, (d, seg))
         return (k + 1, seg.t1, seg.p1, seg.v1_post, kind2, support2, n2, reason == END, buf)
 
-    k, *_, done, buf = jax.lax.while_loop(cond, body, init)
-    return Plan(decisions=buf, n_segments=k, complete=done)
+    k, *_, done, (decisions, segments) = jax.lax.while_loop(cond, body, init)
+    # Unused slots hold the final state, so that sampling past the last segment is exact.
+    last = jax.tree.map(lambda x: x[jnp.maximum(k - 1, 0)], segments)
+    unused = jnp.arange(S) >= k
+    fill = Segment(last.t1, last.p1, last.v1_post, jnp.zeros(3), last.t1, last.p1, last.v1_post, last.v1_post)
+    segments = jax.tree.map(
+        lambda x, f: jnp.where(unused.reshape((S,) + (1,) * f.ndim), f, x), segments, fill
+    )
+    return Plan(decisions=decisions, segments=segments, n_segments=k, complete=done)
 
 
 def replay(scene: Scene, params, t_end, decisions: Decision) -> Segment:
@@ -303,3 +304,25 @@ def replay(scene: Scene, params, t_end, decisions: Decision) -> Segment:
     init = (jnp.zeros_like(params.e), params.position, params.velocity)
     _, segments = jax.lax.scan(step, init, decisions)
     return segments
+
+
+@jax.custom_jvp
+def segments_of(scene: Scene, params, t_end, decisions: Decision, planned: Segment) -> Segment:
+    """The segments of a plan, with the derivatives of ``replay``.
+
+    The forward pass reuses the values ``plan`` already computed; only derivatives run
+    ``replay`` (forward mode directly, reverse mode through JAX's transpose of it).
+    """
+    return planned
+
+
+@segments_of.defjvp
+def _segments_of_jvp(primals, tangents):
+    scene, params, t_end, decisions, planned = primals
+    d_scene, d_params, d_t_end, _, _ = tangents
+
+    def f(s, p, t):
+        return replay(s, p, t, decisions)
+
+    _, d_out = jax.jvp(f, (scene, params, t_end), (d_scene, d_params, d_t_end))
+    return planned, d_out

@@ -116,8 +116,8 @@ def sample(seg: Segment, d: Decision, e, mu_t, g, t):
     return p.reshape(shape + (3,)), v.reshape(shape + (3,))
 
 
-def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Events:
-    """Expand the segments of one ball into its list of contact events."""
+def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
+    """Map event slots to segments: which segment, which bounce of a train."""
     is_train = d.kind == TRAIN
     contact = (d.reason == CONTACT) & (d.kind != UNUSED)
     w = jnp.where(is_train, seg.v0[:, 2], 1.0)
@@ -132,39 +132,51 @@ def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Event
     listable = jnp.where((e > 0) & (e < 1), listable, jnp.where(e == 0, 0.0, jnp.inf))
     bounces = jnp.where(jnp.isfinite(d.n), bounces, jnp.minimum(bounces, listable))
     settles = is_train & (d.reason == SETTLE)
-    n_train = jnp.where(is_train, bounces, 0.0) + settles
-    total = jnp.where(contact, 1.0, n_train)
+    total = jnp.where(contact, 1.0, jnp.where(is_train, bounces, 0.0) + settles)
     # Slots are int32 indices; a count past max_events only marks the list truncated.
     capped = jnp.minimum(total, max_events + 1.0)
     ends = jnp.cumsum(capped)
-    starts = ends - capped
     i = jnp.arange(max_events, dtype=jnp.float64)
     k = jnp.clip(jnp.searchsorted(ends, i, side="right"), 0, ends.shape[0] - 1)
-    valid = i < ends[-1]
-    local = i - starts[k] + 1.0  # bounce number within a train, from 1
-    s = jax.tree.map(lambda x: x[k], seg)
-    dk = jax.tree.map(lambda x: x[k], d)
-    train_slot = dk.kind == TRAIN
-    settle_slot = train_slot & (dk.reason == SETTLE) & (local > bounces[k])
+    local = i - (ends - capped)[k] + 1.0  # bounce number within a train, from 1
+    train_slot = d.kind[k] == TRAIN
+    settle_slot = train_slot & (d.reason[k] == SETTLE) & (local > bounces[k])
+    bounce = jnp.where(train_slot & ~settle_slot, local, 1.0)
+    return k, bounce, i < ends[-1], train_slot, settle_slot, ends[-1]
 
-    def bounce(v0, t0, p0, j):
-        v0 = jnp.where(v0[2] > 0, v0, jnp.array([0.0, 0.0, 1.0]))
-        tf = 2.0 * v0[2] / g
-        u = v0.at[2].set(0.0)
+
+def _bounce(v0, t0, p0, j, e, mu_t, g):
+    """Bounce j (from 1) of a train: time, position, velocity before and after, and the
+    start (time, position, velocity) of the flight that ends at it."""
+    v0 = jnp.where(v0[2] > 0, v0, jnp.array([0.0, 0.0, 1.0]))
+    tf = 2.0 * v0[2] / g
+    u = v0.at[2].set(0.0)
+
+    def at(j):
         t = t0 + tf * geometric_sum(e, j)
         pos = p0 + u * tf * geometric_sum(e * mu_t, j)
-        pre = (u * safe_power(mu_t, j - 1.0)).at[2].set(-v0[2] * safe_power(e, j - 1.0))
-        post = (u * safe_power(mu_t, j)).at[2].set(v0[2] * safe_power(e, j))
-        return t, pos, pre, post
+        vel = (u * safe_power(mu_t, j)).at[2].set(v0[2] * safe_power(e, j))
+        return t, pos, vel
 
-    jj = jnp.where(train_slot & ~settle_slot, local, 1.0)
-    bt, bp, bpre, bpost = jax.vmap(bounce)(s.v0, s.t0, s.p0, jj)
+    t, pos, post = at(j)
+    t_s, p_s, v_s = at(j - 1.0)
+    pre = v_s.at[2].set(-v_s[2])
+    return t, pos, pre, post, (t_s, p_s, v_s)
+
+
+def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Events:
+    """Expand the segments of one ball into its list of contact events."""
+    k, j, valid, train_slot, settle_slot, total = _event_slots(seg, d, e, g, max_events)
+    s = jax.tree.map(lambda x: x[k], seg)
+    bt, bp, bpre, bpost, _ = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, None, None, None))(
+        s.v0, s.t0, s.p0, j, e, mu_t, g
+    )
     plain = ~train_slot | settle_slot
     t = jnp.where(plain, s.t1, bt)
     pos = jnp.where(plain[:, None], s.p1, bp)
     pre = jnp.where(plain[:, None], s.v1, bpre)
     post = jnp.where(plain[:, None], s.v1_post, bpost)
-    face = jnp.where(train_slot, dk.support, dk.face)
+    face = jnp.where(train_slot, d.support[k], d.face[k])
     # A contact without normal speed is a landing to rest, not an impact: an impact changes
     # the velocity by at least (1 + e) times the normal speed.
     kind = jnp.where(settle_slot | (jnp.linalg.norm(pre - post, axis=1) <= REST_SPEED), REST, IMPACT)
@@ -176,6 +188,22 @@ def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Event
         velocity_post=jnp.where(valid[:, None], post, zero),
         face=jnp.where(valid, face, -1).astype(jnp.int32),
         kind=jnp.where(valid, kind, -1).astype(jnp.int32),
-        count=jnp.minimum(ends[-1], max_events).astype(jnp.int32),
-        truncated=ends[-1] > max_events,
+        count=jnp.minimum(total, max_events).astype(jnp.int32),
+        truncated=total > max_events,
     )
+
+
+def event_flights(seg: Segment, d: Decision, e, mu_t, g, max_events: int):
+    """For every listed event, the start ``(t, position, velocity, acceleration)`` of the
+    ballistic piece that ends at it, and whether the event is a crossing of a face (not a
+    settle). Used by the implicit-function sensitivities of ``estim.event_sensitivities``."""
+    k, j, valid, train_slot, settle_slot, _ = _event_slots(seg, d, e, g, max_events)
+    s = jax.tree.map(lambda x: x[k], seg)
+    *_, (t_s, p_s, v_s) = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, None, None, None))(
+        s.v0, s.t0, s.p0, j, e, mu_t, g
+    )
+    in_train = train_slot & ~settle_slot
+    t0 = jnp.where(in_train, t_s, s.t0)
+    p0 = jnp.where(in_train[:, None], p_s, s.p0)
+    v0 = jnp.where(in_train[:, None], v_s, s.v0)
+    return t0, p0, v0, s.acc, valid & ~settle_slot

@@ -1,0 +1,282 @@
+"""The ``estim`` command line: ``simulate``, ``bench speed``, ``demo``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+from ._demo import SEED, default_scene_path
+
+__all__ = ["main"]
+
+THETA = ("e", "mu_t", "vx0")
+
+
+class UsageError(Exception):
+    """A bad argument found after parsing (exit code 2)."""
+
+
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="estim",
+        description="Exact, differentiable simulation of balls bouncing in an MJCF scene.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    sim = sub.add_parser("simulate", help="simulate one ball and list its contact events",
+                         description="Simulate one ball of a scene; list its contact events "
+                                     "and final state (optionally with sensitivities).")
+    sim.add_argument("--scene", default=None,
+                     help="MJCF scene file (default: the bundled data/scenes/stairs.xml)")
+    sim.add_argument("--ball", required=True, help="name of a ball (body) in the scene")
+    sim.add_argument("--e", type=_finite, default=None,
+                     help="coefficient of restitution in [0, 1] (default: the seed value of "
+                          "the ball: bocce 0.55, golf 0.70, pingpong 0.85)")
+    sim.add_argument("--mu-t", type=_finite, default=SEED["mu_t"],
+                     help=f"tangential coefficient in [0, 1] (default {SEED['mu_t']})")
+    for axis in ("x", "y", "z"):
+        sim.add_argument(f"--{axis}0", type=_finite, default=None,
+                         help=f"release {axis} (m; default: the ball's position in the scene)")
+    for axis, i in (("x", 0), ("y", 1), ("z", 2)):
+        sim.add_argument(f"--v{axis}0", type=_finite, default=SEED["velocity"][i],
+                         help=f"release velocity {axis} (m/s; default {SEED['velocity'][i]})")
+    sim.add_argument("--t-end", type=_finite, default=SEED["t_end"],
+                     help=f"final time (s), > 0 (default {SEED['t_end']})")
+    sim.add_argument("--sensitivities", action="store_true",
+                     help="also give d(final x, final z, event times)/d(e, mu_t, vx0)")
+    sim.add_argument("--json", action="store_true", help="print one JSON object")
+    sim.set_defaults(func=_cmd_simulate)
+
+    bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks.")
+    bsub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    speed = bsub.add_parser("speed", help="forward / gradient / first-call / batch timings",
+                            description="Time the seed scene in this process (first call in "
+                                        "a fresh subprocess) against the targets.")
+    speed.add_argument("--json", action="store_true", help="print one JSON object")
+    speed.add_argument("--batch", type=_positive_int, default=10_000,
+                       help="balls in the batch timing (default 10000)")
+    speed.add_argument("--repeats", type=_positive_int, default=200,
+                       help="timed calls per figure (median; default 200)")
+    speed.add_argument("--scene", default=None, help="scene file (default: the seed scene)")
+    speed.set_defaults(func=_cmd_bench_speed)
+
+    demo = sub.add_parser("demo", help="simulate the seed scene; write summary.json, heights.png",
+                          description="Simulate the seed scene's three balls, print a summary "
+                                      "and write summary.json and heights.png into --out.")
+    demo.add_argument("--out", required=True, help="output directory (created if missing)")
+    demo.add_argument("--scene", default=None, help="scene file (default: the seed scene)")
+    demo.set_defaults(func=_cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)  # argparse's own errors exit with status 2
+    try:
+        return args.func(args)
+    except (UsageError, ValueError, KeyError, FileNotFoundError, IsADirectoryError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        if isinstance(exc, FileNotFoundError) and not str(exc).strip():
+            msg = "file not found"
+        print(f"estim {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+def _cmd_simulate(args) -> int:
+    import jax.numpy as jnp
+    import numpy as np
+
+    import estim
+
+    e = args.e if args.e is not None else SEED["e"].get(args.ball)
+    for name, value in (("--e", e), ("--mu-t", args.mu_t)):
+        if value is not None and not 0.0 <= value <= 1.0:
+            raise UsageError(f"{name} must lie in [0, 1], got {value}")
+    if not args.t_end > 0:
+        raise UsageError(f"--t-end must be > 0 (seconds), got {args.t_end}")
+
+    scene_path = args.scene or default_scene_path()
+    scene = estim.load_scene(scene_path)
+    spec = scene.ball(args.ball)
+    if e is None:
+        raise UsageError(f"--e is required for ball {args.ball!r} (no seed value)")
+    position = [spec.position[i] if v is None else v
+                for i, v in enumerate((args.x0, args.y0, args.z0))]
+    velocity = [args.vx0, args.vy0, args.vz0]
+    params = estim.Params(e, args.mu_t, spec.radius, position, velocity)
+    traj = estim.simulate(scene, params, args.t_end)
+
+    ev = traj.events
+    count = int(ev.count)
+    t = np.asarray(ev.t)[:count]
+    pos = np.asarray(ev.position)[:count]
+    vpre = np.asarray(ev.velocity_pre)[:count]
+    face = np.asarray(ev.face)[:count]
+    kind = np.asarray(ev.kind)[:count]
+    events = []
+    for i in range(count):
+        surface, label = scene.face_label(int(face[i]))
+        events.append({
+            "t": float(t[i]),
+            "x": float(pos[i, 0]), "y": float(pos[i, 1]), "z": float(pos[i, 2]),
+            "vx": float(vpre[i, 0]), "vy": float(vpre[i, 1]), "vz": float(vpre[i, 2]),
+            "surface": surface, "face": label,
+            "kind": "impact" if int(kind[i]) == 0 else "settle",
+        })
+    fp, fv = np.asarray(traj.final.position), np.asarray(traj.final.velocity)
+    out = {
+        "scene": scene_path,
+        "ball": spec.name,
+        "radius": float(spec.radius),
+        "params": {
+            "e": float(e), "mu_t": float(args.mu_t),
+            "x0": float(position[0]), "y0": float(position[1]), "z0": float(position[2]),
+            "vx0": float(velocity[0]), "vy0": float(velocity[1]), "vz0": float(velocity[2]),
+            "t_end": float(args.t_end),
+        },
+        "n_impacts": sum(1 for x in events if x["kind"] == "impact"),
+        "n_events": count,
+        "truncated": bool(ev.truncated),
+        "events": events,
+        "final": {
+            "t": float(traj.final.t),
+            "x": float(fp[0]), "y": float(fp[1]), "z": float(fp[2]),
+            "vx": float(fv[0]), "vy": float(fv[1]), "vz": float(fv[2]),
+        },
+    }
+
+    if args.sensitivities:
+        theta = jnp.array([e, args.mu_t, args.vx0], dtype=jnp.float64)
+        dx, dz, dt = _sensitivities(scene, theta, jnp.asarray(spec.radius, jnp.float64),
+                                    jnp.asarray(position, jnp.float64),
+                                    jnp.asarray(velocity[1:], jnp.float64), float(args.t_end))
+        dx, dz, dt = np.asarray(dx), np.asarray(dz), np.asarray(dt)
+
+        def named(row):
+            return {k: float(v) for k, v in zip(THETA, row, strict=True)}
+
+        out["sensitivities"] = {
+            "wrt": list(THETA),
+            "final": {"x": named(dx), "z": named(dz)},
+            "events": [{"t": named(dt[i])} for i in range(count)],
+        }
+
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(_format_simulation(out))
+    return 0
+
+
+def _sensitivities(scene, theta, radius, position, v_yz, t_end):
+    """One ``jax.jacfwd`` of theta = (e, mu_t, vx0) -> (final x, final z, event times);
+    jitted, so repeated calls with the same shapes compile once."""
+    global _SENS
+    if _SENS is None:
+        import equinox as eqx
+        import jax
+        import jax.numpy as jnp
+
+        import estim
+
+        @eqx.filter_jit
+        def sens(scene, theta, radius, position, v_yz, t_end):
+            def f(theta):
+                e, mu_t, vx0 = theta[0], theta[1], theta[2]
+                velocity = jnp.concatenate([vx0[None], v_yz])
+                traj = estim.simulate(scene, estim.Params(e, mu_t, radius, position, velocity), t_end)
+                ev = traj.events
+                valid = jnp.arange(ev.t.shape[-1]) < ev.count
+                times = jnp.where(valid, ev.t, 0.0)  # padding (inf) masked out
+                return traj.final.position[0], traj.final.position[2], times
+
+            return jax.jacfwd(f)(theta)
+
+        _SENS = sens
+    return _SENS(scene, theta, radius, position, v_yz, t_end)
+
+
+_SENS = None
+
+
+def _format_simulation(out: dict) -> str:
+    p = out["params"]
+    lines = [
+        f"ball {out['ball']} (r = {out['radius']} m) in {out['scene']}",
+        f"e = {p['e']}, mu_t = {p['mu_t']}, release ({p['x0']}, {p['y0']}, {p['z0']}) m, "
+        f"velocity ({p['vx0']}, {p['vy0']}, {p['vz0']}) m/s, t_end = {p['t_end']} s",
+        "",
+        f"{out['n_events']} events ({out['n_impacts']} impacts)"
+        + (" [truncated: more events than listed]" if out["truncated"] else ""),
+        f"{'#':>3} {'t (s)':>13} {'x (m)':>13} {'z (m)':>13} {'vx (m/s)':>13} {'vz (m/s)':>13}  "
+        f"{'surface':<12} kind",
+    ]
+    for i, ev in enumerate(out["events"]):
+        lines.append(
+            f"{i + 1:>3} {ev['t']:>13.9f} {ev['x']:>13.9f} {ev['z']:>13.9f} {ev['vx']:>13.9f} "
+            f"{ev['vz']:>13.9f}  {ev['surface'] + ' ' + ev['face']:<12} {ev['kind']}"
+        )
+    f = out["final"]
+    lines += [
+        "",
+        f"final state at t = {f['t']} s:",
+        f"  position ({f['x']:.10f}, {f['y']:.10f}, {f['z']:.10f}) m",
+        f"  velocity ({f['vx']:.10f}, {f['vy']:.10f}, {f['vz']:.10f}) m/s",
+    ]
+    if "sensitivities" in out:
+        s = out["sensitivities"]
+        head = "".join(f"{'d/d' + k:>16}" for k in THETA)
+        lines += ["", "sensitivities (one jacfwd):", f"{'':<12}{head}"]
+        for name, row in (("final x", s["final"]["x"]), ("final z", s["final"]["z"])):
+            lines.append(f"{name:<12}" + "".join(f"{row[k]:>16.8f}" for k in THETA))
+        for i, ev in enumerate(s["events"]):
+            lines.append(f"{f't event {i + 1}':<12}" + "".join(f"{ev['t'][k]:>16.8f}" for k in THETA))
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- bench, demo
+
+
+def _cmd_bench_speed(args) -> int:
+    from ._bench import format_speed, run_speed
+
+    result = run_speed(batch=args.batch, repeats=args.repeats, scene_path=args.scene)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(format_speed(result))
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from ._demo import format_summary, run_demo
+
+    summary = run_demo(args.out, scene_path=args.scene)
+    print(format_summary(summary))
+    print("wrote " + ", ".join(summary["files"]))
+    return 0
