@@ -28,6 +28,7 @@ by mu_t,
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -44,13 +45,29 @@ SPEED_TOL = 1e-12
 REST_SPEED = 1e-9
 
 
-def face_tables(scene: Scene, radius: Float[Array, ""]):
-    """Per-face unit normal, plane offset (with the radius), and the owning box.
+class Faces(eqx.Module):
+    """Every contact face of a scene for one ball radius, packed for fast lookup.
 
-    Returns ``(normal (F, 3), offset (F,), centre (F, 3), half (F, 3), rank (F,))``. For a
-    plane face ``half`` is infinite, so that the L1 region test of ``on_face`` always passes.
-    ``rank`` is 1 for box faces and planes, 2 for edge bevels, 3 for corner faces.
+    ``row`` holds one row per face: unit normal (3), plane offset H including the radius
+    (1), centre (3) and half sizes (3) of the owning box (infinite for a plane), face
+    direction m (3), index of the owning solid (1). ``lo``/``hi`` are the corners of every
+    solid's box grown by r along each axis (planes are boxes with infinite sides).
     """
+
+    row: Float[Array, "faces 14"]
+    rank: Int[Array, " faces"]
+    lo: Float[Array, "solids 3"]
+    hi: Float[Array, "solids 3"]
+    radius: Float[Array, ""]
+
+
+NORMAL, OFFSET, CENTRE, HALF, DIRECTION, SOLID = slice(0, 3), 3, slice(4, 7), slice(7, 10), slice(10, 13), 13
+
+
+def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
+    """The face table of ``scene`` for a ball of radius ``radius`` (differentiable in the
+    geometry and the radius). Rank is 1 for box faces and planes, 2 for edge bevels, 3 for
+    corner faces."""
     solid = np.asarray(scene.face_solid)
     m = np.asarray(scene.face_direction)
     is_box = solid < scene.n_boxes
@@ -59,18 +76,24 @@ def face_tables(scene: Scene, radius: Float[Array, ""]):
     norm = np.linalg.norm(m, axis=1)
     c = scene.box_centre[box]
     h = scene.box_half[box]
-    box_offset = (jnp.sum(m * c, axis=1) + jnp.sum(np.abs(m) * h, axis=1) + radius) / norm
+    offset = (jnp.sum(m * c, axis=1) + jnp.sum(np.abs(m) * h, axis=1) + radius) / norm
+    normal = jnp.asarray(m / norm[:, None])
     if scene.plane_offset.shape[0]:
-        plane_offset = scene.plane_offset[plane] + radius
-        normal = jnp.where(is_box[:, None], m / norm[:, None], scene.plane_normal[plane])
-    else:
-        plane_offset = jnp.zeros(len(solid))
-        normal = jnp.asarray(m / norm[:, None])
-    offset = jnp.where(is_box, box_offset, plane_offset)
+        offset = jnp.where(is_box, offset, scene.plane_offset[plane] + radius)
+        normal = jnp.where(is_box[:, None], normal, scene.plane_normal[plane])
     half = jnp.where(is_box[:, None], h, jnp.inf)
     centre = jnp.where(is_box[:, None], c, 0.0)
+    row = jnp.concatenate(
+        [normal, offset[:, None], centre, half, jnp.asarray(m), jnp.asarray(solid, float)[:, None]],
+        axis=1,
+    )
+    # Solids as boxes grown by r per axis; a plane sigma x_k <= s is x_k <= s + r
+    # (sigma = 1) or x_k >= -(s + r) (sigma = -1), unbounded along the other axes.
+    pn, ps = scene.plane_normal, (scene.plane_offset + radius)[:, None]
+    lo = jnp.concatenate([scene.box_centre - scene.box_half - radius, jnp.where(pn < 0, -ps, -jnp.inf)])
+    hi = jnp.concatenate([scene.box_centre + scene.box_half + radius, jnp.where(pn > 0, ps, jnp.inf)])
     rank = np.where(is_box, np.abs(m).sum(axis=1), 1).astype(np.int32)
-    return normal, offset, centre, half, rank
+    return Faces(row=row, rank=jnp.asarray(rank), lo=lo, hi=hi, radius=jnp.asarray(radius))
 
 
 def entering_time(
@@ -108,11 +131,10 @@ def on_face(q, centre, half, radius) -> Bool[Array, "*f"]:
 
 
 def first_contact(
-    scene: Scene,
-    radius: Float[Array, ""],
-    p: Float[Array, 3],
-    v: Float[Array, 3],
-    a: Float[Array, 3],
+    faces: Faces,
+    p: Float[Array, "3"],
+    v: Float[Array, "3"],
+    a: Float[Array, "3"],
     exclude: Int[Array, ""],
 ) -> tuple[Float[Array, ""], Int[Array, ""]]:
     """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.
@@ -121,30 +143,29 @@ def first_contact(
     (to 1e-12 s) are resolved in favour of box faces over bevels over corners, so a ball
     landing exactly on a tread edge lands on the tread.
     """
-    normal, offset, centre, half, rank = face_tables(scene, radius)
+    normal, offset = faces.row[:, NORMAL], faces.row[:, OFFSET]
+    centre, half = faces.row[:, CENTRE], faces.row[:, HALF]
     tau = entering_time(normal @ p - offset, normal @ v, normal @ a)
     finite = jnp.isfinite(tau)
     q, _ = ballistic(p, v, a, jnp.where(finite, tau, 0.0)[:, None])
-    ok = finite & on_face(q, centre, half, radius)
+    ok = finite & on_face(q, centre, half, faces.radius)
     ok = ok & (jnp.arange(tau.shape[0]) != exclude)
     tau = jnp.where(ok, tau, jnp.inf)
     t_min = jnp.min(tau)
     near = tau <= t_min + 1e-12
-    face = jnp.argmin(jnp.where(near, jnp.asarray(rank), 99)).astype(jnp.int32)
+    face = jnp.argmin(jnp.where(near, faces.rank, 99)).astype(jnp.int32)
     return t_min, jnp.where(jnp.isfinite(t_min), face, -1)
 
 
-def face_normal(scene: Scene, radius, face):
-    """Unit outward normal of face ``face`` (differentiable in nothing: normals are fixed
-    by the face direction)."""
-    normal, *_ = face_tables(scene, radius)
-    return normal[face]
+def face_normal(faces: Faces, face):
+    """Unit outward normal of face ``face``."""
+    return faces.row[face, NORMAL]
 
 
-def face_entering_time(scene: Scene, radius, face, p, v, a):
+def face_entering_time(faces: Faces, face, p, v, a):
     """``entering_time`` for one face, recomputed from the state (differentiable)."""
-    normal, offset, *_ = face_tables(scene, radius)
-    n, h = normal[face], offset[face]
+    r = faces.row[face]
+    n, h = r[NORMAL], r[OFFSET]
     return entering_time(n @ p - h, n @ v, n @ a)
 
 
@@ -154,33 +175,31 @@ def reset(v, n, e, mu_t):
     return mu_t * (v - vn * n) - e * vn * n
 
 
-def slide_exit_time(scene: Scene, radius, face, p, v, a):
+def slide_exit_time(faces: Faces, face, p, v, a):
     """Time at which a ball sliding on box face ``face`` leaves it (inf on a plane).
 
     The face of direction m is the set of grown-box points with ``s_i (q_i - c_i) >= h_i``
     where ``m_i = s_i != 0`` and ``|q_i - c_i| <= h_i`` elsewhere; each bound is a guard of
     the form (1), so the exit time is the earliest ``entering_time`` among them.
     """
-    m = jnp.asarray(np.asarray(scene.face_direction))[face]
-    solid = jnp.asarray(np.asarray(scene.face_solid))[face]
-    is_box = solid < scene.n_boxes
-    b = jnp.where(is_box, solid, 0)
-    c, h = scene.box_centre[b], scene.box_half[b]
-    q, dq, ddq = p - c, v, a
-    # Two bounds per axis, phi = sign * q + bound >= 0.
-    lower_active = (m <= 0)  # q_i >= -h_i  (m_i = 0)  or  -q_i >= h_i (m_i = -1)
+    r = faces.row[face]
+    m, c, h = r[DIRECTION], r[CENTRE], r[HALF]
+    q = p - c
+    # Two bounds per axis, phi = sign * q + bound >= 0: the low side (q_i >= -h_i, or
+    # -q_i >= h_i on a face pointing to -i) and the high side (q_i <= h_i, or q_i >= h_i).
     sign_lo = jnp.where(m < 0, -1.0, 1.0)
     bound_lo = jnp.where(m < 0, -h, h)
     sign_hi = jnp.where(m > 0, 1.0, -1.0)
     bound_hi = jnp.where(m > 0, -h, h)
-    t_lo = entering_time(sign_lo * q + bound_lo, sign_lo * dq, sign_lo * ddq)
-    t_hi = entering_time(sign_hi * q + bound_hi, sign_hi * dq, sign_hi * ddq)
-    t_lo = jnp.where(lower_active | (m < 0), t_lo, jnp.inf)
-    t_hi = jnp.where(m >= 0, t_hi, jnp.inf)
-    return jnp.where(is_box, jnp.minimum(jnp.min(t_lo), jnp.min(t_hi)), jnp.inf)
+    finite = jnp.isfinite(h)
+    t_lo = entering_time(sign_lo * q + jnp.where(finite, bound_lo, 1.0), sign_lo * v, sign_lo * a)
+    t_hi = entering_time(sign_hi * q + jnp.where(finite, bound_hi, 1.0), sign_hi * v, sign_hi * a)
+    t_lo = jnp.where(finite & (m <= 0), t_lo, jnp.inf)
+    t_hi = jnp.where(finite & (m >= 0), t_hi, jnp.inf)
+    return jnp.minimum(jnp.min(t_lo), jnp.min(t_hi))
 
 
-def train_reach(scene: Scene, radius, face, p, u, height):
+def train_reach(faces: Faces, face, p, u, height):
     """How far (m) a bounce series on an upward face may travel along ``u`` undisturbed.
 
     The flights of a series on one horizontal face all stay in the slab
@@ -188,20 +207,12 @@ def train_reach(scene: Scene, radius, face, p, u, height):
     apex) above the segment from p along u. Returns the distance to the first place where
     that slab meets another solid's box grown by r in every axis (a superset of the solid's
     contact region, so the bound is conservative), or where the face ends; ``-1`` when the
-    slab is blocked from the start. Planes are boxes with infinite sides here.
+    slab is blocked from the start.
     """
-    solid = jnp.asarray(np.asarray(scene.face_solid))[face]
-    nb = scene.n_boxes
-    lo_box = scene.box_centre - scene.box_half - radius
-    hi_box = scene.box_centre + scene.box_half + radius
-    # A plane sigma x_k <= s, grown by r, is the box with x_k <= s + r (sigma = 1) or
-    # x_k >= -(s + r) (sigma = -1) and infinite extent along the other axes.
-    n, s = scene.plane_normal, (scene.plane_offset + radius)[:, None]
+    r = faces.row[face]
+    solid = r[SOLID]
+    lo, hi = faces.lo, faces.hi
     inf = jnp.inf
-    lo_pl = jnp.where(n < 0, -s, -inf)
-    hi_pl = jnp.where(n > 0, s, inf)
-    lo = jnp.concatenate([lo_box, lo_pl])
-    hi = jnp.concatenate([hi_box, hi_pl])
     zeta = p[2]
     overlap = (lo[:, 2] < zeta + height - POSITION_TOL) & (hi[:, 2] > zeta + POSITION_TOL)
     speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
@@ -219,13 +230,11 @@ def train_reach(scene: Scene, radius, face, p, u, height):
     leave = jnp.min(s_out, axis=1)
     hit = overlap & (enter <= leave) & (jnp.arange(lo.shape[0]) != solid)
     obstacle = jnp.min(jnp.where(hit, enter, inf))
-    # Where the face itself ends (box top faces; planes never end).
-    is_box = solid < nb
-    b = jnp.where(is_box, solid, 0)
-    c, h = scene.box_centre[b, :2], scene.box_half[b, :2]
+    # Where the face itself ends (box top faces; planes, with infinite half sizes, never end).
+    c, h = r[CENTRE][:2], r[HALF][:2]
     edge = jnp.where(d > 0, c + h, c - h)
-    to_edge = jnp.where(dz, (edge - p[:2]) / dd, inf)
-    exit_face = jnp.where(is_box & moving, jnp.min(to_edge), inf)
+    to_edge = jnp.where(dz & jnp.isfinite(h), (edge - p[:2]) / dd, inf)
+    exit_face = jnp.where(moving, jnp.min(to_edge), inf)
     reach = jnp.minimum(obstacle, exit_face)
     return jnp.where(obstacle <= POSITION_TOL, -1.0, jnp.maximum(reach, 0.0))
 

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._config import require_x64
-from ._contact import face_tables
+from ._contact import NORMAL, OFFSET, faces_for
 from ._params import Params
 from ._scene import Scene
 from ._solver import plan, segments_of
@@ -119,13 +119,13 @@ def _sensitivities(unpack, theta, t_end, max_segments, max_events, grazing_speed
         sc, prm, _, (t_s, p_s, v_s, acc, _) = solve(th)
         tau = jnp.where(crossing, t_fixed - t_s, 0.0)[:, None]
         x = p_s + v_s * tau + 0.5 * acc * tau**2
-        normal, offset, *_ = face_tables(sc, prm.radius)
-        return jnp.sum(normal[face] * x, axis=1) - offset[face]
+        row = faces_for(sc, prm.radius).row[face]
+        return jnp.sum(row[:, NORMAL] * x, axis=1) - row[:, OFFSET]
 
     numerator = jax.jacfwd(guard)(theta)
     sc, prm = unpack(theta)
-    normal, *_ = face_tables(sc, prm.radius)
-    closing = jnp.sum(normal[face] * events.velocity_pre, axis=1)
+    normal = faces_for(sc, prm.radius).row[face][:, NORMAL]
+    closing = jnp.sum(normal * events.velocity_pre, axis=1)
     grazing = crossing & (jnp.abs(closing) < grazing_speed)
     floored = jnp.where(jnp.abs(closing) < grazing_speed, -grazing_speed, closing)
     implicit = -numerator / floored[:, None]

@@ -40,9 +40,11 @@ from jaxtyping import Array, Float, Int
 
 from ._contact import (
     REST_SPEED,
+    Faces,
     ballistic,
     face_entering_time,
     face_normal,
+    faces_for,
     first_contact,
     geometric_count,
     geometric_sum,
@@ -101,9 +103,9 @@ def contact_velocity(v, n, a, e, mu_t):
     return jnp.where(impact, jnp.where(settles, tangential * kept, bounced), tangential)
 
 
-def _slide_frame(scene, radius, support, v, a):
+def _slide_frame(faces, support, v, a):
     """Velocity and acceleration of a ball sliding on face ``support``."""
-    n = face_normal(scene, radius, jnp.maximum(support, 0))
+    n = face_normal(faces, jnp.maximum(support, 0))
     return v - jnp.dot(v, n) * n, a - jnp.dot(a, n) * n
 
 
@@ -133,24 +135,24 @@ def train_end(v0, n, e, mu_t, g):
     return duration, travel, vel
 
 
-def advance(scene: Scene, params, t, p, v, d: Decision, t_end) -> Segment:
+def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segment:
     """Carry the state (t, p, v) through one segment with structure ``d``."""
-    e, mu_t, radius = params.e, params.mu_t, params.radius
-    g = scene.gravity
+    e, mu_t = params.e, params.mu_t
+    g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
-    slide_v, slide_a = _slide_frame(scene, radius, d.support, v, a)
+    slide_v, slide_a = _slide_frame(faces, d.support, v, a)
     sliding = d.kind == SLIDE
     v0 = jnp.where(sliding, slide_v, v)
     acc = jnp.where(sliding, slide_a, a)
     face = jnp.maximum(d.face, 0)
 
     # FLIGHT and SLIDE: ballistic motion to a contact, a slide exit, or t_end.
-    tau_contact = face_entering_time(scene, radius, face, p, v0, acc)
-    tau_exit = slide_exit_time(scene, radius, jnp.maximum(d.support, 0), p, v0, acc)
+    tau_contact = face_entering_time(faces, face, p, v0, acc)
+    tau_exit = slide_exit_time(faces, jnp.maximum(d.support, 0), p, v0, acc)
     tau_b = jnp.where(d.reason == CONTACT, tau_contact, jnp.where(d.reason == EXIT, tau_exit, t_end - t))
     tau_b = jnp.where(jnp.isfinite(tau_b), tau_b, 0.0)
     p_b, v_b = ballistic(p, v0, acc, tau_b)
-    n_face = face_normal(scene, radius, face)
+    n_face = face_normal(faces, face)
     v_b_post = jnp.where(d.reason == CONTACT, contact_velocity(v_b, n_face, a, e, mu_t), v_b)
 
     # TRAIN: a closed-form series of bounces, to bounce n, to its accumulation, or to t_end.
@@ -179,13 +181,13 @@ def advance(scene: Scene, params, t, p, v, d: Decision, t_end) -> Segment:
     return Segment(t, p, v0, acc, t1, p1, v1, v1_post)
 
 
-def _next_structure(scene, params, seg: Segment, d: Decision):
+def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     """Kind, support and bounce count of the segment that follows ``seg``."""
-    e, mu_t, radius = params.e, params.mu_t, params.radius
-    g = scene.gravity
+    e, mu_t = params.e, params.mu_t
+    g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     face = jnp.maximum(d.face, 0)
-    n_face = face_normal(scene, radius, face)
+    n_face = face_normal(faces, face)
     post = seg.v1_post
     settled = (jnp.abs(jnp.dot(post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, a) < 0)
     up = n_face[2] > 1.0 - 1e-12
@@ -193,12 +195,12 @@ def _next_structure(scene, params, seg: Segment, d: Decision):
     w = post[2]
     u = post.at[2].set(0.0)
     t_flight = 2.0 * w / g
-    reach = train_reach(scene, radius, face, seg.p1, u, w * w / (2.0 * g))
+    reach = train_reach(faces, face, seg.p1, u, w * w / (2.0 * g))
     speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
     y = jnp.where(speed > 0, reach / jnp.where(speed > 0, speed * t_flight, 1.0), jnp.inf)
     n_train = jnp.where(reach < 0, 0.0, geometric_count(e * mu_t, y))
     # A wall hit while sliding keeps the ball on its face.
-    if_support = face_normal(scene, radius, jnp.maximum(d.support, 0))
+    if_support = face_normal(faces, jnp.maximum(d.support, 0))
     stays = (d.kind == SLIDE) & (jnp.abs(jnp.dot(n_face, if_support)) < 1e-12)
 
     after_contact_kind = jnp.where(
@@ -218,17 +220,17 @@ def _next_structure(scene, params, seg: Segment, d: Decision):
     return kind.astype(jnp.int32), support.astype(jnp.int32), n
 
 
-def _decide_end(scene, params, t, p, v, kind, support, n, t_end):
+def _decide_end(faces: Faces, gravity, params, t, p, v, kind, support, n, t_end):
     """How the segment starting at (t, p, v) ends: ``(reason, face)``."""
-    e, mu_t, radius = params.e, params.mu_t, params.radius
-    g = scene.gravity
+    e, mu_t = params.e, params.mu_t
+    g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
-    slide_v, slide_a = _slide_frame(scene, radius, support, v, a)
+    slide_v, slide_a = _slide_frame(faces, support, v, a)
     sliding = kind == SLIDE
     v0 = jnp.where(sliding, slide_v, v)
     acc = jnp.where(sliding, slide_a, a)
-    tau_c, face = first_contact(scene, radius, p, v0, acc, jnp.where(sliding, support, -1))
-    tau_x = jnp.where(sliding, slide_exit_time(scene, radius, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
+    tau_c, face = first_contact(faces, p, v0, acc, jnp.where(sliding, support, -1))
+    tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
     tau_b = jnp.minimum(tau_c, tau_x)
     reason_b = jnp.where(t + tau_b >= t_end, END, jnp.where(tau_c <= tau_x, CONTACT, EXIT))
     face_b = jnp.where(reason_b == CONTACT, face, -1)
@@ -252,10 +254,11 @@ class Plan(eqx.Module):
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """Find the discrete structure (no gradients flow through this pass)."""
     scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
+    faces, g = faces_for(scene, params.radius), scene.gravity
     S = max_segments
     t0 = jnp.zeros_like(params.e)
     d0 = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.asarray(0.0), jnp.int32(END), jnp.int32(-1))
-    s0 = advance(scene, params, t0, params.position, params.velocity, d0, t_end)
+    s0 = advance(faces, g, params, t0, params.position, params.velocity, d0, t_end)
     buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), (d0, s0))
     init = (
         jnp.int32(0),
@@ -275,10 +278,10 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
     def body(carry):
         k, t, p, v, kind, support, n, _, buf = carry
-        reason, face = _decide_end(scene, params, t, p, v, kind, support, n, t_end)
+        reason, face = _decide_end(faces, g, params, t, p, v, kind, support, n, t_end)
         d = Decision(kind, support, n, reason, face)
-        seg = advance(scene, params, t, p, v, d, t_end)
-        kind2, support2, n2 = _next_structure(scene, params, seg, d)
+        seg = advance(faces, g, params, t, p, v, d, t_end)
+        kind2, support2, n2 = _next_structure(faces, g, params, seg, d)
         buf = jax.tree.map(lambda b, x: b.at[k].set(x), buf, (d, seg))
         return (k + 1, seg.t1, seg.p1, seg.v1_post, kind2, support2, n2, reason == END, buf)
 
@@ -296,9 +299,11 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 def replay(scene: Scene, params, t_end, decisions: Decision) -> Segment:
     """Recompute every segment from the structure, differentiably (``lax.scan``)."""
 
+    faces = faces_for(scene, params.radius)
+
     def step(state, d):
         t, p, v = state
-        seg = advance(scene, params, t, p, v, d, t_end)
+        seg = advance(faces, scene.gravity, params, t, p, v, d, t_end)
         return (seg.t1, seg.p1, seg.v1_post), seg
 
     init = (jnp.zeros_like(params.e), params.position, params.velocity)
