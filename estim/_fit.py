@@ -1,0 +1,442 @@
+"""Fit e, mu_t and the release speed per ball from tracked positions, with uncertainty.
+
+The pipeline, per ball (all balls of a data set run together, batched with ``vmap``):
+
+1. **Start from the data** (``estim._initial``): split the track into flights, read e, mu_t,
+   vx0 and the release point off them. The loss is rough in the parameters (a bounce moving
+   onto the next tread changes the rest of the trajectory), so starting close matters more
+   than any optimiser.
+2. **Grow the time window**: fit the data up to the third resolved bounce first, then all.
+3. **Minimise a robust loss** ``sum rho(r / s)`` (``estim._loss``) in unconstrained
+   coordinates (``e = sigmoid(a)``, ``mu_t = sigmoid(b)``: constraints by
+   reparametrisation, never by clipping) with optax's L-BFGS and its zoom line search, then
+   polish with Levenberg-Marquardt on the iteratively reweighted residuals, which converges
+   quadratically near the optimum.
+4. **Check the noise floor**: the rms residual of the inliers must match the noise level
+   read from the data (second differences within flights); if it does not, restart from
+   perturbed starting values and keep the best. The report says when the floor is not
+   reached.
+5. **Uncertainty** from the Gauss-Newton approximation at the optimum:
+   ``cov = s^2 (J^T W J)^-1`` with J the Jacobian of the residuals with respect to the
+   physical parameters, W the robust weights and ``s^2 = sum w r^2 / (n - p)`` the noise
+   variance estimated from the residuals. A parameter the data cannot determine (mu_t with
+   no bounce observed, say) shows up as a vanishing column of J and is reported as not
+   identifiable instead of with a meaningless number.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ._config import require_x64
+from ._initial import Initial, initial_guess
+from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
+from ._params import Params
+from ._scene import Scene
+from ._solver import plan, segments_of
+from ._trajectory import IMPACT, list_events, sample
+
+__all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
+
+# Every parameter a fit can estimate, in the order of the internal vector.
+PARAMETERS = ("e", "mu_t", "vx0", "x0", "z0", "vz0", "t0", "y0", "vy0")
+DEFAULT_FREE = ("e", "mu_t", "vx0", "x0", "z0")
+_BOUNDED = ("e", "mu_t")  # in (0, 1) through a sigmoid
+
+
+class _Problem(eqx.Module):
+    """One ball's data and fixed values, padded to a common number of samples."""
+
+    t: jax.Array  # (N,)
+    obs: jax.Array  # (N, 3)
+    mask: jax.Array  # (N, 3) bool
+    radius: jax.Array  # ()
+    fixed: jax.Array  # (len(PARAMETERS),) values of the parameters that are not fitted
+    scale: jax.Array  # () noise level s of the robust loss (m)
+
+
+def _index(free):
+    return np.array([PARAMETERS.index(n) for n in free])
+
+
+def _to_physical(theta, free, fixed):
+    values = [jax.nn.sigmoid(theta[i]) if n in _BOUNDED else theta[i] for i, n in enumerate(free)]
+    return fixed.at[_index(free)].set(jnp.stack(values))
+
+
+def _to_theta(phi, free):
+    out = []
+    for n in free:
+        v = phi[PARAMETERS.index(n)]
+        if n in _BOUNDED:
+            v = jnp.clip(v, 1e-6, 1 - 1e-6)
+            v = jnp.log(v) - jnp.log1p(-v)
+        out.append(v)
+    return jnp.stack(out)
+
+
+def _simulate_at(scene: Scene, phi, problem: _Problem, max_segments: int):
+    """Model positions at the sample times, and the events, for physical values phi."""
+    e, mu_t, vx0, x0, z0, vz0, t0, y0, vy0 = (phi[i] for i in range(len(PARAMETERS)))
+    params = Params(e, mu_t, problem.radius, jnp.stack([x0, y0, z0]), jnp.stack([vx0, vy0, vz0]))
+    ts = jnp.clip(problem.t - t0, 0.0, None)
+    t_end = jnp.maximum(jnp.max(ts), 1e-3)
+    pl = plan(scene, params, t_end, max_segments)
+    segs = segments_of(scene, params, t_end, pl.decisions, pl.segments)
+    pos, _ = sample(segs, pl.decisions, e, mu_t, scene.gravity, ts)
+    return pos, (segs, pl.decisions, ts)
+
+
+def _residuals(scene, phi, problem, max_segments):
+    pos, (_, _, ts) = _simulate_at(scene, phi, problem, max_segments)
+    valid = problem.mask & (problem.t >= phi[PARAMETERS.index("t0")])[:, None]
+    return jnp.where(valid, pos - problem.obs, 0.0).reshape(-1), valid.reshape(-1)
+
+
+def _fit_one(scene, free, loss, lbfgs_steps, lm_steps, max_segments, theta0, problem):
+    """Robust L-BFGS then Levenberg-Marquardt for one ball; returns theta and loss history."""
+
+    def res(theta):
+        return _residuals(scene, _to_physical(theta, free, problem.fixed), problem, max_segments)[0]
+
+    def objective(theta):
+        return jnp.sum(robust_loss(res(theta) / problem.scale, loss))
+
+    opt = optax.lbfgs()
+    value_and_grad = optax.value_and_grad_from_state(objective)
+
+    def lbfgs_step(carry, _):
+        theta, state = carry
+        value, grad = value_and_grad(theta, state=state)
+        grad = jnp.where(jnp.isfinite(grad), grad, 0.0)
+        updates, state = opt.update(grad, state, theta, value=value, grad=grad, value_fn=objective)
+        theta_new = optax.apply_updates(theta, updates)
+        theta_new = jnp.where(jnp.all(jnp.isfinite(theta_new)), theta_new, theta)
+        return (theta_new, state), value
+
+    (theta, _), history_lbfgs = jax.lax.scan(lbfgs_step, (theta0, opt.init(theta0)), None, length=lbfgs_steps)
+
+    def lm_step(carry, _):
+        theta, lam = carry
+        r = res(theta)
+        J = jax.jacfwd(res)(theta)
+        w = robust_weight(r / problem.scale, loss)
+        Jw, rw = J * jnp.sqrt(w)[:, None], r * jnp.sqrt(w)
+        H = Jw.T @ Jw
+        g = Jw.T @ rw
+        damp = lam * (jnp.diag(H) + 1e-12)
+        step = -jnp.linalg.solve(H + jnp.diag(damp), g)
+        current = objective(theta)
+        trial = objective(theta + step)
+        better = jnp.isfinite(trial) & (trial < current)
+        theta = jnp.where(better, theta + step, theta)
+        lam = jnp.where(better, lam / 3.0, lam * 4.0)
+        return (theta, lam), jnp.minimum(current, jnp.where(better, trial, current))
+
+    (theta, lam), history_lm = jax.lax.scan(lm_step, (theta, jnp.asarray(1e-3)), None, length=lm_steps)
+    return theta, jnp.concatenate([history_lbfgs, history_lm]), lam
+
+
+def _diagnose(scene, free, loss, max_segments, theta, problem):
+    """Residuals, robust weights and the Jacobian w.r.t. the physical parameters."""
+    phi = _to_physical(theta, free, problem.fixed)
+    idx = _index(free)
+
+    def res_phys(values):
+        return _residuals(scene, phi.at[idx].set(values), problem, max_segments)
+
+    (r, valid) = res_phys(phi[idx])
+    J = jax.jacfwd(lambda v: res_phys(v)[0])(phi[idx])
+    w = robust_weight(r / problem.scale, loss)
+    pos, (segs, decisions, ts) = _simulate_at(scene, phi, problem, max_segments)
+    events = list_events(segs, decisions, phi[0], phi[1], scene.gravity, 64)
+    return phi, r, valid, w, J, pos, events
+
+
+@dataclass
+class BallFit:
+    """The fit of one ball.
+
+    ``values`` and ``stderr`` map parameter names to numbers (stderr NaN where the data
+    cannot determine the parameter, with the reason in ``notes``); ``correlation`` is the
+    correlation matrix of the fitted parameters in the order of ``names``.
+    """
+
+    ball: str
+    values: dict[str, float]
+    stderr: dict[str, float]
+    names: tuple[str, ...]
+    correlation: np.ndarray
+    rms_m: float  # rms residual of the inliers (m)
+    noise_m: float  # noise level read from the data (m)
+    n_obs: int  # valid samples
+    n_outliers: int  # samples the robust loss set aside (|r| > 5 noise)
+    n_bounces: int  # impacts of the fitted model within the data
+    converged: bool
+    at_noise_floor: bool
+    notes: list[str] = field(default_factory=list)
+    loss_history: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    initial: Initial | None = None
+    model_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    model_position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def to_json(self) -> dict:
+        out = {k: self.values[k] for k in self.values}
+        out.update(
+            stderr={k: (None if not math.isfinite(v) else v) for k, v in self.stderr.items()},
+            correlation={"names": list(self.names), "matrix": np.round(self.correlation, 6).tolist()},
+            rms_m=self.rms_m,
+            noise_m=self.noise_m,
+            n_obs=self.n_obs,
+            n_outliers=self.n_outliers,
+            n_bounces=self.n_bounces,
+            converged=self.converged,
+            at_noise_floor=self.at_noise_floor,
+            notes=self.notes,
+        )
+        return out
+
+
+@dataclass
+class FitResult:
+    balls: dict[str, BallFit]
+    source: str = ""
+
+    @property
+    def converged(self) -> bool:
+        return all(b.converged for b in self.balls.values())
+
+    def to_json(self) -> dict:
+        return {"source": self.source, "balls": {k: v.to_json() for k, v in self.balls.items()}}
+
+
+def fit(
+    scene: Scene,
+    data: dict[str, tuple[np.ndarray, np.ndarray]],
+    *,
+    free: tuple[str, ...] = DEFAULT_FREE,
+    fixed: dict[str, dict[str, float]] | None = None,
+    loss: str = "cauchy",
+    lbfgs_steps: int = 25,
+    lm_steps: int = 25,
+    restarts: int = 4,
+    max_segments: int = 48,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Fit every ball of a data set.
+
+    Args:
+        scene: the scene the balls move in (radii from its balls).
+        data: ``ball -> (t (n,), position (n, 3))`` in seconds and metres, NaN marking a lost
+            coordinate (``Tracks.arrays()`` gives this).
+        free: the parameters to fit (see ``PARAMETERS``); the rest are fixed at their
+            starting values: ``vz0 = 0``, ``t0 = 0`` (release at the data's t = 0),
+            ``y0`` the ball's y in the scene, ``vy0 = 0``, unless ``fixed`` says otherwise.
+        fixed: per ball, values to hold fixed (or to start from, for free parameters).
+        loss: ``"cauchy"`` (default), ``"huber"`` or ``"l2"``.
+        restarts: how many perturbed starts to try for balls whose fit misses the noise floor.
+        progress: called with a short message at each stage.
+    """
+    require_x64()
+    if loss not in ROBUST_LOSSES:
+        raise ValueError(f"unknown loss {loss!r}; choose one of {ROBUST_LOSSES}")
+    bad = [n for n in free if n not in PARAMETERS]
+    if bad:
+        raise ValueError(f"unknown parameter(s) {bad}; a fit can estimate {PARAMETERS}")
+    say = progress or (lambda msg: None)
+    names = list(data)
+    if not names:
+        raise ValueError("no balls to fit")
+    g = float(scene.gravity)
+    fixed = fixed or {}
+    starts, problems, inits = [], [], []
+    n_max = max(len(np.asarray(data[b][0])) for b in names)
+    for b in names:
+        spec = scene.ball(b)
+        t, pos = (np.asarray(a, dtype=np.float64) for a in data[b])
+        init = initial_guess(t, pos[:, 0], pos[:, 2], g)
+        inits.append(init)
+        values = dict(e=init.e, mu_t=init.mu_t, vx0=init.vx0, x0=init.x0, z0=init.z0,
+                      vz0=0.0, t0=0.0, y0=spec.position[1], vy0=0.0)
+        if "vz0" in free:
+            values["vz0"] = init.vz0
+        y = pos[:, 1][np.isfinite(pos[:, 1])]
+        if len(y):
+            values["y0"] = float(np.median(y))
+        values.update(fixed.get(b, {}))
+        phi = np.array([values[n] for n in PARAMETERS])
+        pad = n_max - len(t)
+        mask = np.isfinite(pos)
+        problems.append(_Problem(
+            t=jnp.asarray(np.concatenate([t, np.full(pad, t[-1])])),
+            obs=jnp.asarray(np.concatenate([np.nan_to_num(pos), np.zeros((pad, 3))])),
+            mask=jnp.asarray(np.concatenate([mask, np.zeros((pad, 3), bool)])),
+            radius=jnp.asarray(spec.radius),
+            fixed=jnp.asarray(phi),
+            scale=jnp.asarray(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3),
+        ))
+        starts.append(np.asarray(_to_theta(jnp.asarray(phi), free)))
+        say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
+            f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
+    batch = jax.tree.map(lambda *xs: jnp.stack(xs), *problems)
+    run = _compiled(scene, tuple(free), loss, lbfgs_steps, lm_steps, max_segments)
+    diagnose = _compiled_diagnose(scene, tuple(free), loss, max_segments)
+
+    # Growing window: first up to the third resolved bounce, then everything.
+    windows = []
+    for init in inits:
+        windows.append(init.bounces[2] + 0.05 if len(init.bounces) >= 3 else np.inf)
+    theta = jnp.asarray(np.stack(starts))
+    if np.any(np.isfinite(windows)):
+        say("fitting the first bounces")
+        early = eqx.tree_at(lambda p: p.mask, batch, batch.mask & (batch.t <= jnp.asarray(windows)[:, None])[..., None])
+        theta, _, _ = run(theta, early)
+    say("fitting all data")
+    theta, history, _ = run(theta, batch)
+    diag = diagnose(theta, batch)
+    floors = [_at_floor(diag, i, problems[i]) for i in range(len(names))]
+    best_theta, best_diag, best_hist = theta, diag, history
+    rng = np.random.default_rng(0)
+    for attempt in range(restarts):
+        if all(floors):
+            break
+        say(f"restart {attempt + 1}: {[n for n, ok in zip(names, floors, strict=True) if not ok]} above the noise floor")
+        trial = np.asarray(best_theta).copy()
+        for i, ok in enumerate(floors):
+            if not ok:
+                phi = np.asarray(_to_physical(jnp.asarray(starts[i]), free, problems[i].fixed))
+                for n, spread in (("e", 0.08), ("mu_t", 0.03), ("vx0", 0.05)):
+                    if n in free:
+                        k = PARAMETERS.index(n)
+                        phi[k] = phi[k] + spread * rng.uniform(-1, 1)
+                phi[:2] = np.clip(phi[:2], 0.02, 0.995)
+                trial[i] = np.asarray(_to_theta(jnp.asarray(phi), free))
+        theta_t, hist_t, _ = run(jnp.asarray(trial), batch)
+        diag_t = diagnose(theta_t, batch)
+        for i in range(len(names)):
+            if _objective(diag_t, i, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
+                best_theta = best_theta.at[i].set(theta_t[i])
+                best_hist = best_hist.at[i].set(hist_t[i])
+        best_diag = diagnose(best_theta, batch)
+        floors = [_at_floor(best_diag, i, problems[i]) for i in range(len(names))]
+    results = {}
+    for i, b in enumerate(names):
+        results[b] = _report(b, free, best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i])
+    return FitResult(results)
+
+
+def _objective(diag, i, loss, problem):
+    _, r, valid, *_ = diag
+    return float(jnp.sum(jnp.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
+
+
+def _inliers(diag, i, problem):
+    _, r, valid, *_ = diag
+    r, valid = np.asarray(r[i]), np.asarray(valid[i])
+    s = float(problem.scale)
+    keep = valid & (np.abs(r) <= 5 * s)
+    return r, valid, keep
+
+
+def _at_floor(diag, i, problem) -> bool:
+    r, valid, keep = _inliers(diag, i, problem)
+    rms = math.sqrt(np.mean(r[keep] ** 2)) if keep.any() else math.inf
+    return rms <= 1.3 * float(problem.scale)
+
+
+@eqx.filter_jit
+def _run(scene, free, loss, lbfgs_steps, lm_steps, max_segments, theta, batch):
+    fn = lambda th, pr: _fit_one(scene, free, loss, lbfgs_steps, lm_steps, max_segments, th, pr)  # noqa: E731
+    return jax.vmap(fn)(theta, batch)
+
+
+@eqx.filter_jit
+def _run_diagnose(scene, free, loss, max_segments, theta, batch):
+    fn = lambda th, pr: _diagnose(scene, free, loss, max_segments, th, pr)  # noqa: E731
+    return jax.vmap(fn)(theta, batch)
+
+
+def _compiled(scene, free, loss, lbfgs_steps, lm_steps, max_segments):
+    return lambda theta, batch: _run(scene, free, loss, lbfgs_steps, lm_steps, max_segments, theta, batch)
+
+
+def _compiled_diagnose(scene, free, loss, max_segments):
+    return lambda theta, batch: _run_diagnose(scene, free, loss, max_segments, theta, batch)
+
+
+def _report(ball, free, diag, i, problem, init, history, at_floor) -> BallFit:
+    phi, r, valid, w, J, pos, events = (x[i] if hasattr(x, "shape") else jax.tree.map(lambda a: a[i], x) for x in diag)
+    phi = np.asarray(phi)
+    r_all, valid_np, keep = _inliers(diag, i, problem)
+    n_obs = int(np.asarray(problem.mask).any(axis=1).sum())
+    rms = math.sqrt(np.mean(r_all[keep] ** 2)) if keep.any() else math.nan
+    # Gauss-Newton covariance with robust weights and the residual noise estimate.
+    J = np.asarray(J)
+    w = np.asarray(w) * valid_np
+    Jw = J * np.sqrt(w)[:, None]
+    dof = max(int(valid_np.sum()) - len(free), 1)
+    s2 = float(np.sum(w * r_all**2) / dof)
+    notes = []
+    col = np.linalg.norm(Jw, axis=0)
+    scale_cols = np.where(col > 0, col, 1.0)
+    Jn = Jw / scale_cols
+    u, sv, vt = np.linalg.svd(Jn, full_matrices=False)
+    identifiable = np.ones(len(free), bool)
+    weak = sv < 1e-6 * sv.max() if sv.size else np.array([], bool)
+    for k in np.flatnonzero(weak):
+        involved = np.abs(vt[k]) > 0.3
+        identifiable &= ~involved
+    identifiable &= col > 1e-9 * max(col.max(), 1e-300)
+    for k, n in enumerate(free):
+        if not identifiable[k]:
+            notes.append(f"{n} is not identifiable from this data" + (" (no bounce observed)" if n in ("e", "mu_t") and not init.bounces else ""))
+    stderr = {n: math.nan for n in free}
+    corr = np.full((len(free), len(free)), np.nan)
+    ids = np.flatnonzero(identifiable)
+    if ids.size:
+        Ji = Jw[:, ids]
+        try:
+            cov = s2 * np.linalg.inv(Ji.T @ Ji)
+            sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+            for a, k in enumerate(ids):
+                stderr[free[k]] = float(sd[a])
+            sub = cov / np.outer(sd, sd)
+            corr[np.ix_(ids, ids)] = sub
+        except np.linalg.LinAlgError:
+            notes.append("the Gauss-Newton matrix is singular: no standard errors")
+    n_imp = int(np.sum((np.asarray(events.kind) == IMPACT) & (np.asarray(events.t) <= float(np.max(np.asarray(problem.t))))))
+    improvement = np.abs(np.diff(history[-4:])) if len(history) >= 4 else np.array([np.inf])
+    converged = bool(np.all(np.isfinite(history[-1:])) and np.all(improvement <= 1e-6 * max(abs(history[-1]), 1.0)))
+    if not at_floor:
+        notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {float(problem.scale) * 1e3:.2f} mm read from the data: the fit may sit in a local minimum")
+    values = {n: float(phi[PARAMETERS.index(n)]) for n in PARAMETERS}
+    t_np = np.asarray(problem.t)
+    return BallFit(
+        ball=ball,
+        values=values,
+        stderr=stderr,
+        names=tuple(free),
+        correlation=corr,
+        rms_m=rms,
+        noise_m=float(problem.scale),
+        n_obs=n_obs,
+        n_outliers=int((valid_np & ~keep).reshape(-1, 3).any(axis=1).sum()),
+        n_bounces=n_imp,
+        converged=converged,
+        at_noise_floor=at_floor,
+        notes=notes,
+        loss_history=history,
+        initial=init,
+        model_t=t_np,
+        model_position=np.asarray(pos),
+        residuals=r_all.reshape(-1, 3),
+    )
