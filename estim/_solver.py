@@ -39,6 +39,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ._contact import (
+    CENTRE,
+    HALF,
     REST_SPEED,
     Faces,
     ballistic,
@@ -47,13 +49,13 @@ from ._contact import (
     faces_for,
     first_contact,
     geometric_count,
-    geometric_sum,
+    on_face,
     reset,
-    safe_power,
     slide_exit_time,
     train_reach,
 )
 from ._scene import Scene
+from ._train import series, series_end, state_at
 
 # Segment kinds.
 FLIGHT, TRAIN, SLIDE, UNUSED = 0, 1, 2, 3
@@ -65,7 +67,7 @@ class Decision(eqx.Module):
     """The discrete structure of one segment (found by ``plan``)."""
 
     kind: Int[Array, ""]
-    support: Int[Array, ""]  # face slid or bounced on (TRAIN, SLIDE), else -1
+    support: Int[Array, ""]  # face slid or bounced on (TRAIN, SLIDE) or slid off (FLIGHT), else -1
     n: Float[Array, ""]  # bounces in a TRAIN (inf for a Zeno train)
     reason: Int[Array, ""]  # END, CONTACT, EXIT, BOUNCES or SETTLE
     face: Int[Array, ""]  # face hit at a CONTACT, else -1
@@ -75,13 +77,14 @@ class Segment(eqx.Module):
     """One segment in closed form: its start state and acceleration, its end state."""
 
     t0: Float[Array, ""]
-    p0: Float[Array, 3]
-    v0: Float[Array, 3]
-    acc: Float[Array, 3]
+    p0: Float[Array, "3"]
+    v0: Float[Array, "3"]
+    acc: Float[Array, "3"]
     t1: Float[Array, ""]
-    p1: Float[Array, 3]
-    v1: Float[Array, 3]  # just before the end (pre-impact at a contact)
-    v1_post: Float[Array, 3]  # just after the end (post-impact at a contact)
+    p1: Float[Array, "3"]
+    v1: Float[Array, "3"]  # just before the end (pre-impact at a contact)
+    v1_post: Float[Array, "3"]  # just after the end (post-impact at a contact)
+    normal: Float[Array, "3"]  # normal of the face a TRAIN bounces on (else zero)
 
 
 def contact_velocity(v, n, a, e, mu_t):
@@ -109,32 +112,6 @@ def _slide_frame(faces, support, v, a):
     return v - jnp.dot(v, n) * n, a - jnp.dot(a, n) * n
 
 
-def train_state(v0, tau_j, j, e, mu_t, g):
-    """Offsets of the state in flight j of a train, ``tau_j`` after bounce j (eq. (1)).
-
-    Returns (horizontal travel since the train began, height above the face, velocity).
-    """
-    w = v0[2]
-    u = v0.at[2].set(0.0)
-    t_flight = 2.0 * w / g
-    ej, mj = safe_power(e, j), safe_power(mu_t, j)
-    travel = u * t_flight * geometric_sum(e * mu_t, j) + u * mj * tau_j
-    height = w * ej * tau_j - 0.5 * g * tau_j**2
-    vel = (u * mj).at[2].set(w * ej - g * tau_j)
-    return travel, height, vel
-
-
-def train_end(v0, n, e, mu_t, g):
-    """Duration, travel and final velocity of a train of n bounces (n may be inf)."""
-    w = v0[2]
-    u = v0.at[2].set(0.0)
-    t_flight = 2.0 * w / g
-    duration = t_flight * geometric_sum(e, n)
-    travel = u * t_flight * geometric_sum(e * mu_t, jnp.where(jnp.isfinite(duration), n, 0.0))
-    vel = (u * safe_power(mu_t, n)).at[2].set(jnp.where(jnp.isfinite(n), w * safe_power(e, n), 0.0))
-    return duration, travel, vel
-
-
 def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segment:
     """Carry the state (t, p, v) through one segment with structure ``d``."""
     e, mu_t = params.e, params.mu_t
@@ -157,20 +134,16 @@ def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segme
 
     # TRAIN: a closed-form series of bounces, to bounce n, to its accumulation, or to t_end.
     is_train = d.kind == TRAIN
-    v_tr = jnp.where(is_train, v, jnp.array([0.0, 0.0, 1.0]))  # keep w > 0 off-branch
+    up = jnp.array([0.0, 0.0, 1.0])
+    n_sup = jnp.where(is_train, face_normal(faces, jnp.maximum(d.support, 0)), up)
+    s = series(jnp.where(is_train, v, up), n_sup, a)  # a finite series off-branch: no NaN cotangents
     n_tr = jnp.where(is_train, d.n, 1.0)
-    duration, travel, v_full = train_end(v_tr, n_tr, e, mu_t, g)
+    duration, travel, v_full = series_end(s, n_tr, e, mu_t)
     at_end = d.reason == END
     tau_t = jnp.where(at_end, t_end - t, jnp.where(jnp.isfinite(duration), duration, 0.0))
-    t_flight = 2.0 * v_tr[2] / g
-    j = jnp.minimum(geometric_count(e, tau_t / t_flight), jnp.where(jnp.isfinite(n_tr), n_tr, 1e6))
-    j = jnp.minimum(j, 1e6)
-    tau_j = tau_t - t_flight * geometric_sum(e, j)
-    tr_travel, tr_height, tr_vel = train_state(v_tr, tau_j, j, e, mu_t, g)
-    p_tr = jnp.where(at_end, p + tr_travel + jnp.array([0.0, 0.0, 1.0]) * tr_height, p + travel)
+    tr_travel, tr_vel = state_at(s, tau_t, e, mu_t, n_tr)
+    p_tr = p + jnp.where(at_end, tr_travel, travel)
     v_tr_end = jnp.where(at_end, tr_vel, v_full)
-    if_zeno_settles = jnp.where(mu_t == 1.0, 1.0, 0.0)
-    v_tr_end = jnp.where(d.reason == SETTLE, v_tr_end * if_zeno_settles, v_tr_end)
 
     tau = jnp.where(is_train, tau_t, tau_b)
     unused = d.kind == UNUSED
@@ -178,7 +151,7 @@ def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segme
     v1 = jnp.where(unused, v, jnp.where(is_train, v_tr_end, v_b))
     v1_post = jnp.where(unused, v, jnp.where(is_train, v_tr_end, v_b_post))
     t1 = jnp.where(unused, t, t + tau)
-    return Segment(t, p, v0, acc, t1, p1, v1, v1_post)
+    return Segment(t, p, v0, acc, t1, p1, v1, v1_post, jnp.where(is_train, n_sup, 0.0))
 
 
 def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
@@ -199,12 +172,24 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
     y = jnp.where(speed > 0, reach / jnp.where(speed > 0, speed * t_flight, 1.0), jnp.inf)
     n_train = jnp.where(reach < 0, 0.0, geometric_count(e * mu_t, y))
+    # On an inclined face that supports the ball (an edge bevel) only a whole Zeno series is
+    # summed, when its accumulation point and its first landing lie on the face.
+    inclined = (jnp.dot(n_face, a) < 0) & ~up & (e < 1)
+    n_inc = jnp.where(inclined, n_face, jnp.array([0.0, 0.0, 1.0]))
+    s = series(jnp.where(inclined, post, n_inc), n_inc, a)
+    _, x_inf, _ = series_end(s, jnp.inf, e, mu_t)
+    _, x_one, _ = series_end(s, 1.0, e, mu_t)
+    row = faces.row[face]
+    lands = on_face(seg.p1 + x_inf, row[CENTRE], row[HALF], faces.radius) & on_face(
+        seg.p1 + x_one, row[CENTRE], row[HALF], faces.radius
+    )
+    n_train = jnp.where(inclined, jnp.where(lands, jnp.inf, 0.0), n_train)
     # A wall hit while sliding keeps the ball on its face.
     if_support = face_normal(faces, jnp.maximum(d.support, 0))
     stays = (d.kind == SLIDE) & (jnp.abs(jnp.dot(n_face, if_support)) < 1e-12)
 
     after_contact_kind = jnp.where(
-        stays | settled, SLIDE, jnp.where(up & (n_train >= 1), TRAIN, FLIGHT)
+        stays | settled, SLIDE, jnp.where((up | inclined) & (n_train >= 1), TRAIN, FLIGHT)
     )
     after_contact_support = jnp.where(stays, d.support, face)
     kind = jnp.select(
@@ -213,9 +198,12 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
         FLIGHT,
     )
     support = jnp.select(
-        [d.reason == CONTACT, d.reason == SETTLE], [after_contact_support, d.support], -1
+        [d.reason == CONTACT, d.reason == SETTLE, d.reason == EXIT],
+        [after_contact_support, d.support, d.support],
+        -1,
     )
-    support = jnp.where((kind == TRAIN) | (kind == SLIDE), support, -1)
+    # A FLIGHT keeps as support the face it slid off (excluded from its contacts).
+    support = jnp.where((kind == TRAIN) | (kind == SLIDE) | (d.reason == EXIT), support, -1)
     n = jnp.where(kind == TRAIN, n_train, 0.0)
     return kind.astype(jnp.int32), support.astype(jnp.int32), n
 
@@ -229,12 +217,16 @@ def _decide_end(faces: Faces, gravity, params, t, p, v, kind, support, n, t_end)
     sliding = kind == SLIDE
     v0 = jnp.where(sliding, slide_v, v)
     acc = jnp.where(sliding, slide_a, a)
-    tau_c, face = first_contact(faces, p, v0, acc, jnp.where(sliding, support, -1))
+    # A slide's own face, and after sliding off a face that face, are excluded: the ball is
+    # on its plane, pressed towards it, but beyond its edge.
+    tau_c, face = first_contact(faces, p, v0, acc, support)
     tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
     tau_b = jnp.minimum(tau_c, tau_x)
     reason_b = jnp.where(t + tau_b >= t_end, END, jnp.where(tau_c <= tau_x, CONTACT, EXIT))
     face_b = jnp.where(reason_b == CONTACT, face, -1)
-    duration, _, _ = train_end(jnp.where(kind == TRAIN, v, jnp.array([0.0, 0.0, 1.0])), jnp.where(kind == TRAIN, n, 1.0), e, mu_t, g)
+    up = jnp.array([0.0, 0.0, 1.0])
+    n_sup = jnp.where(kind == TRAIN, face_normal(faces, jnp.maximum(support, 0)), up)
+    duration, _, _ = series_end(series(jnp.where(kind == TRAIN, v, up), n_sup, a), jnp.where(kind == TRAIN, n, 1.0), e, mu_t)
     reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
     is_train = kind == TRAIN
     reason = jnp.where(is_train, reason_t, reason_b)
@@ -289,7 +281,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     # Unused slots hold the final state, so that sampling past the last segment is exact.
     last = jax.tree.map(lambda x: x[jnp.maximum(k - 1, 0)], segments)
     unused = jnp.arange(S) >= k
-    fill = Segment(last.t1, last.p1, last.v1_post, jnp.zeros(3), last.t1, last.p1, last.v1_post, last.v1_post)
+    fill = Segment(last.t1, last.p1, last.v1_post, jnp.zeros(3), last.t1, last.p1, last.v1_post, last.v1_post, jnp.zeros(3))
     segments = jax.tree.map(
         lambda x, f: jnp.where(unused.reshape((S,) + (1,) * f.ndim), f, x), segments, fill
     )

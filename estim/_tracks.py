@@ -532,7 +532,10 @@ def _bounces(b: np.ndarray, noise: float, *, window: int = 3) -> list[int]:
             continue
         if i - window < 0 or i + window >= n:
             continue
-        if b[i] - b[i - window] > thr and b[i] - b[i + window] > thr:
+        # the neighbours must lie on the falling and rising slopes too, so that a single
+        # outlier sample (a spike in b) is not taken for a bounce
+        if (b[i] - b[i - window] > thr and b[i] - b[i + window] > thr
+                and b[i - 1] - b[i - window] > 0.5 * thr and b[i + 1] - b[i + window] > 0.5 * thr):
             out.append(i)
     return out
 

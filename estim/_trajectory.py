@@ -7,8 +7,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._contact import REST_SPEED, geometric_count, geometric_sum, safe_power
-from ._solver import CONTACT, SETTLE, TRAIN, UNUSED, Decision, Segment, train_state
+from ._contact import REST_SPEED, geometric_count
+from ._solver import BOUNCES, CONTACT, SETTLE, TRAIN, UNUSED, Decision, Segment
+from ._train import bounce, series, state_at
 
 # Event kinds.
 IMPACT, REST = 0, 1
@@ -99,17 +100,15 @@ def sample(seg: Segment, d: Decision, e, mu_t, g, t):
     p_bal = s.p0 + s.v0 * tau[:, None] + 0.5 * s.acc * tau[:, None] ** 2
     v_bal = s.v0 + s.acc * tau[:, None]
 
-    def in_train(v0, tau, n):
-        is_train = v0[2] > 0
-        v0 = jnp.where(is_train, v0, jnp.array([0.0, 0.0, 1.0]))
-        t_flight = 2.0 * v0[2] / g
-        j = geometric_count(e, tau / t_flight)
-        j = jnp.minimum(jnp.minimum(j, jnp.where(jnp.isfinite(n), n, 1e6)), 1e6)
-        tau_j = tau - t_flight * geometric_sum(e, j)
-        travel, height, vel = train_state(v0, tau_j, j, e, mu_t, g)
-        return travel + jnp.array([0.0, 0.0, 1.0]) * height, vel
+    a = jnp.array([0.0, 0.0, -1.0]) * g
 
-    dp, v_tr = jax.vmap(in_train)(jnp.where((kind == TRAIN)[:, None], s.v0, 0.0), tau, n)
+    def in_train(v0, normal, tau, n):
+        is_train = jnp.dot(v0, normal) > 0
+        normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
+        s = series(jnp.where(is_train, v0, normal), normal, a)
+        return state_at(s, tau, e, mu_t, n)
+
+    dp, v_tr = jax.vmap(in_train)(s.v0, s.normal, tau, n)
     is_train = (kind == TRAIN)[:, None]
     p = jnp.where(is_train, s.p0 + dp, p_bal)
     v = jnp.where(is_train, v_tr, v_bal)
@@ -120,12 +119,13 @@ def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
     """Map event slots to segments: which segment, which bounce of a train."""
     is_train = d.kind == TRAIN
     contact = (d.reason == CONTACT) & (d.kind != UNUSED)
-    w = jnp.where(is_train, seg.v0[:, 2], 1.0)
-    t_flight = 2.0 * w / g
-    # Bounces of a train up to its end (t_end, bounce n, or its accumulation) ...
+    a_n = jnp.where(is_train, seg.normal[:, 2], 1.0) * -g
+    w = jnp.where(is_train, jnp.sum(seg.v0 * seg.normal, axis=1), 1.0)
+    t_flight = 2.0 * w / -a_n
+    # Bounces of a train: all n when it ran to bounce n; up to t_end when cut there ...
     before_end = geometric_count(e, (seg.t1 - seg.t0) / t_flight)
-    bounces = jnp.minimum(before_end, d.n)
-    # ... but of a Zeno series only those whose flight lasts at least LISTED_FLIGHT.
+    bounces = jnp.where(d.reason == BOUNCES, d.n, jnp.minimum(before_end, d.n))
+    # ... and of a Zeno series only those whose flight lasts at least LISTED_FLIGHT.
     le = jnp.log(jnp.where((e > 0) & (e < 1), e, 0.5))
     ratio = jnp.log(LISTED_FLIGHT / t_flight)
     listable = jnp.where(t_flight >= LISTED_FLIGHT, jnp.floor(ratio / le) + 1.0, 0.0)
@@ -141,35 +141,26 @@ def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
     local = i - (ends - capped)[k] + 1.0  # bounce number within a train, from 1
     train_slot = d.kind[k] == TRAIN
     settle_slot = train_slot & (d.reason[k] == SETTLE) & (local > bounces[k])
-    bounce = jnp.where(train_slot & ~settle_slot, local, 1.0)
-    return k, bounce, i < ends[-1], train_slot, settle_slot, ends[-1]
+    bounce_no = jnp.where(train_slot & ~settle_slot, local, 1.0)
+    return k, bounce_no, i < ends[-1], train_slot, settle_slot, ends[-1]
 
 
-def _bounce(v0, t0, p0, j, e, mu_t, g):
+def _bounce(v0, normal, t0, p0, j, e, mu_t, g):
     """Bounce j (from 1) of a train: time, position, velocity before and after, and the
     start (time, position, velocity) of the flight that ends at it."""
-    v0 = jnp.where(v0[2] > 0, v0, jnp.array([0.0, 0.0, 1.0]))
-    tf = 2.0 * v0[2] / g
-    u = v0.at[2].set(0.0)
-
-    def at(j):
-        t = t0 + tf * geometric_sum(e, j)
-        pos = p0 + u * tf * geometric_sum(e * mu_t, j)
-        vel = (u * safe_power(mu_t, j)).at[2].set(v0[2] * safe_power(e, j))
-        return t, pos, vel
-
-    t, pos, post = at(j)
-    t_s, p_s, v_s = at(j - 1.0)
-    pre = v_s.at[2].set(-v_s[2])
-    return t, pos, pre, post, (t_s, p_s, v_s)
+    is_train = jnp.dot(v0, normal) > 0
+    normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
+    s = series(jnp.where(is_train, v0, normal), normal, jnp.array([0.0, 0.0, -1.0]) * g)
+    t, x, pre, post, (t_s, x_s, v_s) = bounce(s, j, e, mu_t)
+    return t0 + t, p0 + x, pre, post, (t0 + t_s, p0 + x_s, v_s)
 
 
 def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Events:
     """Expand the segments of one ball into its list of contact events."""
     k, j, valid, train_slot, settle_slot, total = _event_slots(seg, d, e, g, max_events)
     s = jax.tree.map(lambda x: x[k], seg)
-    bt, bp, bpre, bpost, _ = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, None, None, None))(
-        s.v0, s.t0, s.p0, j, e, mu_t, g
+    bt, bp, bpre, bpost, _ = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, 0, None, None, None))(
+        s.v0, s.normal, s.t0, s.p0, j, e, mu_t, g
     )
     plain = ~train_slot | settle_slot
     t = jnp.where(plain, s.t1, bt)
@@ -199,8 +190,8 @@ def event_flights(seg: Segment, d: Decision, e, mu_t, g, max_events: int):
     settle). Used by the implicit-function sensitivities of ``estim.event_sensitivities``."""
     k, j, valid, train_slot, settle_slot, _ = _event_slots(seg, d, e, g, max_events)
     s = jax.tree.map(lambda x: x[k], seg)
-    *_, (t_s, p_s, v_s) = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, None, None, None))(
-        s.v0, s.t0, s.p0, j, e, mu_t, g
+    *_, (t_s, p_s, v_s) = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, 0, None, None, None))(
+        s.v0, s.normal, s.t0, s.p0, j, e, mu_t, g
     )
     in_train = train_slot & ~settle_slot
     t0 = jnp.where(in_train, t_s, s.t0)

@@ -1,0 +1,200 @@
+"""Shared fixtures and helpers for the estim test suite.
+
+Speed: JAX compiles ``estim.simulate`` once per distinct combination of static arguments
+and array shapes (several seconds each). Every simulation in the suite therefore goes
+through the helpers below, which pad a batch of balls to ``B`` and the sample times to
+``NT`` so that each scene compiles ``simulate`` once, and the derivative helpers are
+``jax.jit``-ed functions defined once here.
+
+Importing estim switches JAX's x64 mode on; every helper computes in float64.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import estim
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+STAIRS_XML = ROOT / "data" / "scenes" / "stairs.xml"
+
+B = 64  # every batched simulation has exactly this many balls (padded)
+NT = 64  # every ``ts`` has exactly this many sample times (padded)
+
+# The seed experiment.
+SEED_BALLS = ("bocce", "golf", "pingpong")
+SEED_E = (0.55, 0.70, 0.85)
+SEED_MU = 0.98
+SEED_VX = 1.15
+SEED_X0 = -0.20
+SEED_T_END = 2.3
+G = 9.81
+
+
+def seed_release(scene: estim.Scene, ball: str) -> np.ndarray:
+    """Seed release point of ``ball``: x0 = -0.20, its y in the scene, 0.25 m above step1."""
+    spec = scene.ball(ball)
+    return np.array([SEED_X0, spec.position[1], 1.40 + spec.radius + 0.25])
+
+
+def seed_arrays(scene: estim.Scene):
+    """(e, mu_t, radius, position, velocity) of the three seed balls, as numpy arrays."""
+    e = np.array(SEED_E)
+    mu = np.full(3, SEED_MU)
+    r = np.array([scene.ball(b).radius for b in SEED_BALLS])
+    pos = np.stack([seed_release(scene, b) for b in SEED_BALLS])
+    vel = np.tile([SEED_VX, 0.0, 0.0], (3, 1))
+    return e, mu, r, pos, vel
+
+
+def seed_params(scene: estim.Scene) -> estim.Params:
+    """The seed Params (batch of 3: bocce e=.55, golf e=.70, pingpong e=.85)."""
+    return estim.Params(*seed_arrays(scene))
+
+
+def _pad_rows(x, n: int, event_shape: tuple[int, ...]) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    k = x.shape[0]
+    if k > n:
+        raise ValueError(f"batch of {k} balls exceeds the fixed batch size {n}")
+    if k == n:
+        return x
+    return np.concatenate([x, np.broadcast_to(x[-1:], (n - k,) + event_shape)], axis=0)
+
+
+def padded_params(e, mu_t, radius, position, velocity, n: int = B) -> tuple[estim.Params, int]:
+    """Params padded to the fixed batch size ``n`` (by repeating the last ball).
+
+    Scalars broadcast to the batch. Returns ``(params, k)`` with ``k`` the real balls.
+    """
+    position = np.atleast_2d(np.asarray(position, dtype=np.float64))
+    velocity = np.atleast_2d(np.asarray(velocity, dtype=np.float64))
+    k = max(position.shape[0], velocity.shape[0], np.size(e), np.size(mu_t), np.size(radius))
+    arrays = [
+        np.broadcast_to(np.asarray(e, dtype=np.float64), (k,)),
+        np.broadcast_to(np.asarray(mu_t, dtype=np.float64), (k,)),
+        np.broadcast_to(np.asarray(radius, dtype=np.float64), (k,)),
+        np.broadcast_to(position, (k, 3)),
+        np.broadcast_to(velocity, (k, 3)),
+    ]
+    shapes = [(), (), (), (3,), (3,)]
+    padded = [_pad_rows(a, n, s) for a, s in zip(arrays, shapes)]
+    return estim.Params(*padded), k
+
+
+def padded_ts(ts) -> jnp.ndarray:
+    ts = np.asarray(ts, dtype=np.float64).reshape(-1)
+    if ts.size > NT:
+        raise ValueError(f"{ts.size} sample times exceed the fixed NT = {NT}")
+    return jnp.asarray(_pad_rows(ts, NT, ()))
+
+
+def run(scene, e, mu_t, radius, position, velocity, t_end, ts=None) -> estim.Trajectory:
+    """``estim.simulate`` on a batch padded to B balls and NT sample times.
+
+    Slice the result to the first k balls yourself (k = number of balls given); ``ts``
+    defaults to NT equally spaced times on [0, t_end]. Runs with ``throw=False`` so that
+    one ball exhausting ``max_segments`` does not hide the others: unless ``complete``
+    is False is what a test expects, assert ``traj.complete`` (``assert_complete``).
+    """
+    params, _ = padded_params(e, mu_t, radius, position, velocity)
+    if ts is None:
+        ts = np.linspace(0.0, t_end, NT)
+    return estim.simulate(scene, params, t_end, ts=padded_ts(ts), throw=False)
+
+
+def assert_complete(traj, k: int = B) -> None:
+    """Every one of the first k balls reached t_end within max_segments."""
+    done = np.asarray(traj.complete[:k])
+    assert done.all(), f"balls {np.flatnonzero(~done).tolist()} did not reach t_end"
+
+
+def _outputs(scene, theta, radius, position, velocity, t_end, ts):
+    """(final position, event times, sampled positions, complete as 0/1) with
+    theta[:, :] = (e, mu_t, vx0); ``throw=False``: check ``complete`` yourself."""
+    vel = velocity.at[:, 0].set(theta[:, 2])
+    params = estim.Params(theta[:, 0], theta[:, 1], radius, position, vel)
+    traj = estim.simulate(scene, params, t_end, ts=ts, throw=False)
+    return traj.final.position, traj.events.t, traj.position, traj.complete.astype(jnp.float64)
+
+
+@jax.jit
+def jac_outputs(scene, theta, radius, position, velocity, t_end, ts):
+    """Per-ball Jacobians (jax.jacfwd) of ``_outputs`` w.r.t. (e, mu_t, vx0).
+
+    Balls are independent, so shifting every ball's theta by the same ``delta`` (3,) and
+    differentiating w.r.t. ``delta`` gives each ball's own derivatives. Returns
+    ``(outputs, jacobians)``; each Jacobian leaf has a trailing axis of 3.
+    """
+
+    def f(delta):
+        return _outputs(scene, theta + delta, radius, position, velocity, t_end, ts)
+
+    zero = jnp.zeros(3)
+    return f(zero), jax.jacfwd(f)(zero)
+
+
+@jax.jit
+def grad_final_x(scene, theta, radius, position, velocity, t_end, ts):
+    """jax.grad of ball 0's final x w.r.t. its (e, mu_t, vx0), by reverse mode."""
+
+    def f(th0):
+        th = theta.at[0].set(th0)
+        return _outputs(scene, th, radius, position, velocity, t_end, ts)[0][0, 0]
+
+    return jax.grad(f)(theta[0])
+
+
+@jax.jit
+def evaluate(traj: estim.Trajectory, t):
+    """Jitted ``Trajectory.evaluate`` (call it with t of shape (3, NT) only)."""
+    return traj.evaluate(t)
+
+
+def jac_args(e, mu_t, radius, position, velocity, t_end, ts=None):
+    """Padded arguments for ``jac_outputs`` / ``grad_final_x`` (theta = (e, mu_t, vx0))."""
+    params, k = padded_params(e, mu_t, radius, position, velocity)
+    theta = jnp.stack([params.e, params.mu_t, params.velocity[:, 0]], axis=1)
+    if ts is None:
+        ts = np.linspace(0.0, t_end, NT)
+    return (theta, params.radius, params.position, params.velocity,
+            jnp.asarray(float(t_end)), padded_ts(ts)), k
+
+
+def l1_depth(position, centre, half):
+    """L1 distance of points (..., 3) from boxes (nb, 3): shape (..., nb)."""
+    d = np.abs(np.asarray(position)[..., None, :] - np.asarray(centre)) - np.asarray(half)
+    return np.sum(np.maximum(d, 0.0), axis=-1)
+
+
+@pytest.fixture(scope="session")
+def stairs() -> estim.Scene:
+    return estim.load_scene(STAIRS_XML)
+
+
+@pytest.fixture(scope="session")
+def yard() -> estim.Scene:
+    """A flat ground plane z = 0 and a wall box x in [3.0, 3.2], |y| <= 2, z in [0, 1]."""
+    return estim.Scene.from_arrays(
+        boxes={"wall": ((3.1, 0.0, 0.5), (0.1, 2.0, 0.5))},
+        planes={"ground": ((0.0, 0.0, 1.0), 0.0)},
+        gravity=G,
+    )
+
+
+@pytest.fixture(scope="session")
+def kit():
+    """The helpers of this module, for tests that prefer a fixture to an import."""
+    return types.SimpleNamespace(
+        B=B, NT=NT, G=G, run=run, padded_params=padded_params, padded_ts=padded_ts,
+        jac_outputs=jac_outputs, grad_final_x=grad_final_x, jac_args=jac_args,
+        evaluate=evaluate, seed_arrays=seed_arrays, seed_params=seed_params,
+        seed_release=seed_release, l1_depth=l1_depth,
+        SEED_T_END=SEED_T_END, SEED_MU=SEED_MU, SEED_VX=SEED_VX, SEED_E=SEED_E,
+    )

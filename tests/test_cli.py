@@ -1,0 +1,182 @@
+"""The ``estim`` command line (``estim._cli.main`` in-process, one console subprocess)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import estim
+from estim._cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENE = str(ROOT / "data" / "scenes" / "stairs.xml")
+SEED_E = {"bocce": 0.55, "golf": 0.70, "pingpong": 0.85}
+IMPACTS = {"bocce": 9, "golf": 6, "pingpong": 4}
+FINAL_X = {"bocce": 2.2427444662, "golf": 2.3048901184, "pingpong": 2.3278961376}
+GOLF_GRAD = (0.19213914, 6.81524982, 2.17816532)
+
+
+def run_json(capsys, *args) -> dict:
+    capsys.readouterr()
+    assert main(["simulate", "--scene", SCENE, *args, "--json"]) == 0
+    out = capsys.readouterr().out
+    return json.loads(out)
+
+
+def run_error(capsys, *args) -> str:
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:  # argparse errors
+        code = main(list(args))
+        raise SystemExit(code)
+    assert info.value.code == 2
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    return captured.err
+
+
+@pytest.fixture(scope="module")
+def golf_sens():
+    """Golf with sensitivities, computed once for the module."""
+    import io
+    from contextlib import redirect_stdout
+
+    buf = io.StringIO()
+    with redirect_stdout(buf):
+        code = main(["simulate", "--scene", SCENE, "--ball", "golf", "--e", "0.7",
+                     "--mu-t", "0.98", "--vx0", "1.15", "--sensitivities", "--json"])
+    assert code == 0
+    return json.loads(buf.getvalue())
+
+
+@pytest.mark.parametrize("ball", ["bocce", "golf", "pingpong"])
+def test_simulate_json_known_results(capsys, ball):
+    out = run_json(capsys, "--ball", ball, "--e", str(SEED_E[ball]), "--mu-t", "0.98",
+                   "--vx0", "1.15")
+    assert out["ball"] == ball
+    assert out["n_impacts"] == IMPACTS[ball]
+    assert len(out["events"]) == IMPACTS[ball]
+    assert all(ev["kind"] == "impact" for ev in out["events"])
+    assert out["final"]["x"] == pytest.approx(FINAL_X[ball], abs=1e-9)
+    assert out["final"]["t"] == pytest.approx(2.3)
+    assert set(out["final"]) >= {"t", "x", "y", "z", "vx", "vy", "vz"}
+    for ev in out["events"]:
+        assert set(ev) >= {"t", "x", "y", "z", "vx", "vy", "vz", "surface", "face", "kind"}
+        assert ev["surface"].startswith("step") and ev["face"] == "+z"
+        assert ev["vz"] < 0  # pre-impact velocity points into the tread
+    times = [ev["t"] for ev in out["events"]]
+    assert times == sorted(times)
+    assert out["params"]["e"] == SEED_E[ball]
+
+
+def test_simulate_defaults_and_table(capsys):
+    # Defaults: seed e, mu_t, vx0 and the ball's scene position.
+    out = run_json(capsys, "--ball", "golf")
+    assert out["params"]["x0"] == pytest.approx(-0.2)
+    assert out["params"]["z0"] == pytest.approx(1.70)
+    assert out["final"]["x"] == pytest.approx(FINAL_X["golf"], abs=1e-9)
+    assert main(["simulate", "--scene", SCENE, "--ball", "golf"]) == 0
+    text = capsys.readouterr().out
+    assert "step5" in text and "impact" in text and "2.3048901184" in text
+
+
+def test_sensitivities_final_x(golf_sens):
+    s = golf_sens["sensitivities"]
+    got = [s["final"]["x"][k] for k in ("e", "mu_t", "vx0")]
+    np.testing.assert_allclose(got, GOLF_GRAD, atol=1e-7)
+    assert set(s["final"]["z"]) == {"e", "mu_t", "vx0"}
+    assert len(s["events"]) == len(golf_sens["events"]) == 6
+
+
+def test_sensitivities_event_times_vs_finite_difference(golf_sens):
+    scene = estim.load_scene(SCENE)
+    spec = scene.ball("golf")
+    h = 1e-6
+
+    def times(e):
+        p = estim.Params(e, 0.98, spec.radius, spec.position, (1.15, 0.0, 0.0))
+        ev = estim.simulate(scene, p, 2.3).events
+        return np.asarray(ev.t)[: int(ev.count)]
+
+    plus, minus = times(0.7 + h), times(0.7 - h)
+    assert len(plus) == len(minus) == 6
+    fd = (plus - minus) / (2 * h)
+    got = np.array([ev["t"]["e"] for ev in golf_sens["sensitivities"]["events"]])
+    np.testing.assert_allclose(got, fd, rtol=1e-5, atol=1e-9)
+
+
+def test_sensitivities_table(capsys, golf_sens):
+    assert main(["simulate", "--scene", SCENE, "--ball", "golf", "--sensitivities"]) == 0
+    text = capsys.readouterr().out
+    assert "sensitivities" in text and "0.19213914" in text
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--ball", "tennis"], ["tennis", "bocce", "golf", "pingpong"]),
+        (["--ball", "golf", "--e", "1.5"], ["--e", "[0, 1]"]),
+        (["--ball", "golf", "--mu-t", "-0.1"], ["--mu-t", "[0, 1]"]),
+        (["--ball", "golf", "--e", "nan"], ["--e", "finite"]),
+        (["--ball", "golf", "--vx0", "inf"], ["--vx0", "finite"]),
+        (["--ball", "golf", "--t-end", "0"], ["--t-end", "> 0"]),
+        (["--ball", "golf", "--z0", "1.0"], ["inside", "step1"]),
+    ],
+)
+def test_bad_inputs(capsys, args, words):
+    err = run_error(capsys, "simulate", "--scene", SCENE, *args)
+    for word in words:
+        assert word in err
+
+
+def test_missing_and_malformed_scene(capsys, tmp_path):
+    err = run_error(capsys, "simulate", "--scene", str(tmp_path / "nope.xml"), "--ball", "golf")
+    assert "nope.xml" in err
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<mujoco><worldbody><geom type=")
+    err = run_error(capsys, "simulate", "--scene", str(bad), "--ball", "golf")
+    assert "bad.xml" in err
+
+
+def test_console_entry_subprocess():
+    proc = subprocess.run(
+        [sys.executable, "-m", "estim", "simulate", "--scene", SCENE, "--ball", "pingpong",
+         "--e", "0.85", "--json"],
+        capture_output=True, text=True, cwd=ROOT, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["n_impacts"] == 4
+    assert out["final"]["x"] == pytest.approx(FINAL_X["pingpong"], abs=1e-9)
+
+
+def test_demo(capsys, tmp_path):
+    out_dir = tmp_path / "new" / "out"
+    assert main(["demo", "--out", str(out_dir), "--scene", SCENE]) == 0
+    text = capsys.readouterr().out
+    assert "golf" in text and "bounces" in text
+    summary = json.loads((out_dir / "summary.json").read_text())
+    rows = {r["ball"]: r for r in summary["balls"]}
+    assert set(rows) == set(IMPACTS)
+    for ball, row in rows.items():
+        assert row["bounces"] == IMPACTS[ball]
+        assert row["final_x"] == pytest.approx(FINAL_X[ball], abs=1e-9)
+        assert row["e"] == SEED_E[ball]
+    png = (out_dir / "heights.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+@pytest.mark.slow
+def test_bench_speed_json(capsys):
+    assert main(["bench", "speed", "--json", "--batch", "100", "--repeats", "3"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in ("forward_us", "gradient_us", "first_call_s", "batch_us", "batch_balls_per_s",
+                "targets", "machine"):
+        assert key in out
+    assert set(out["targets"]) == {"forward_us", "gradient_us", "first_call_s", "batch_balls_per_s"}
+    assert out["machine"]["cpu_count"] >= 1 and out["machine"]["jax"]
+    np.testing.assert_allclose(list(out["gradient"].values()), GOLF_GRAD, atol=1e-7)
