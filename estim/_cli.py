@@ -1,4 +1,4 @@
-"""The ``estim`` command line: ``simulate``, ``bench speed``, ``demo``."""
+"""The ``estim`` command line: ``simulate``, ``fit``, ``bench speed``, ``demo``."""
 
 from __future__ import annotations
 
@@ -69,6 +69,28 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     sim.set_defaults(func=_cmd_simulate)
 
+    fit = sub.add_parser("fit", help="fit e, mu_t and vx0 per ball from tracked positions",
+                         description="Fit e, mu_t and the release speed vx0 (and the release "
+                                     "point) of every ball in a tracks file, with standard "
+                                     "errors. Exit code 0 on success, 1 when a fit did not "
+                                     "converge (results still written), 2 on bad input.")
+    fit.add_argument("tracks", help="tracks CSV (t,ball,x,z[,y] in s and m), or with --pixels "
+                                    "an 'a;b;' pixel track")
+    fit.add_argument("--scene", default=None,
+                     help="MJCF scene file (default: data/scenes/stairs.xml)")
+    fit.add_argument("--out", default=None, help="output directory for fit.json and plots")
+    fit.add_argument("--json", action="store_true", help="print the fit.json object to stdout")
+    fit.add_argument("--loss", default="cauchy", choices=("cauchy", "huber", "l2"),
+                     help="robust loss (default cauchy)")
+    fit.add_argument("--pixels", action="store_true",
+                     help="the file is an 'a;b;' pixel track (rows grow downward)")
+    fit.add_argument("--frame-interval", type=_finite, default=None,
+                     help="seconds per frame (required with --pixels)")
+    fit.add_argument("--metres-per-pixel", type=_finite, default=None,
+                     help="pixel scale; default: estimated from gravity")
+    fit.add_argument("--ball", default=None, help="the ball of a pixel track (with --pixels)")
+    fit.set_defaults(func=_cmd_fit)
+
     bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks.")
     bsub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
     speed = bsub.add_parser("speed", help="forward / gradient / first-call / batch timings",
@@ -82,9 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     speed.add_argument("--scene", default=None, help="scene file (default: the seed scene)")
     speed.set_defaults(func=_cmd_bench_speed)
 
-    demo = sub.add_parser("demo", help="simulate the seed scene; write summary.json, heights.png",
-                          description="Simulate the seed scene's three balls, print a summary "
-                                      "and write summary.json and heights.png into --out.")
+    demo = sub.add_parser("demo", help="the main job on the bundled data: fit, table, plots",
+                          description="Fit the bundled tracks (data/tracks/stairs_demo.csv): "
+                                      "table, fit.json and plots into --out; also simulate the "
+                                      "seed scene (summary.json, heights.png).")
     demo.add_argument("--out", required=True, help="output directory (created if missing)")
     demo.add_argument("--scene", default=None, help="scene file (default: the seed scene)")
     demo.set_defaults(func=_cmd_demo)
@@ -274,9 +297,56 @@ def _cmd_bench_speed(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from ._demo import format_summary, run_demo
+    from ._demo import DEMO_TRACKS, format_summary, run_demo
 
     summary = run_demo(args.out, scene_path=args.scene)
     print(format_summary(summary))
     print("wrote " + ", ".join(summary["files"]))
-    return 0
+    fit_args = argparse.Namespace(tracks=str(DEMO_TRACKS), scene=args.scene, out=args.out,
+                                  json=False, loss="cauchy", pixels=False, frame_interval=None,
+                                  metres_per_pixel=None, ball=None)
+    return _cmd_fit(fit_args)
+
+
+# --------------------------------------------------------------------------- fit
+
+
+def _cmd_fit(args) -> int:
+    import os
+
+    from ._job import _progress, fit_csv, fit_pixels, format_table, write_outputs
+
+    scene = args.scene or default_scene_path()
+    if not os.path.isfile(args.tracks):
+        raise FileNotFoundError(f"tracks file not found: {args.tracks}")
+    say = _progress()
+    extra = {}
+    if args.pixels:
+        if args.frame_interval is None or args.frame_interval <= 0:
+            raise UsageError("--pixels needs --frame-interval SECONDS (> 0): a pixel track has no time column")
+        if args.metres_per_pixel is not None and args.metres_per_pixel <= 0:
+            raise UsageError(f"--metres-per-pixel must be > 0, got {args.metres_per_pixel}")
+        if not args.ball:
+            raise UsageError("--pixels needs --ball NAME (the ball of the scene the track follows)")
+        result, data, scale, row = fit_pixels(
+            args.tracks, scene, ball=args.ball, frame_interval=args.frame_interval,
+            metres_per_pixel=args.metres_per_pixel, say=say, loss=args.loss)
+        extra = {"metres_per_pixel": scale, "surface_row_px": row,
+                 "frame_interval_s": args.frame_interval}
+    else:
+        for flag in ("frame_interval", "metres_per_pixel", "ball"):
+            if getattr(args, flag) is not None:
+                raise UsageError(f"--{flag.replace('_', '-')} only applies with --pixels")
+        result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss)
+    payload = result.to_json()
+    payload.update(extra)
+    if args.out:
+        write_outputs(result, data, args.out, extra)
+        say(f"wrote {os.path.join(args.out, 'fit.json')} and plots")
+    if args.json:
+        print(json.dumps(payload, indent=2))
+    else:
+        print(format_table(result))
+        if extra:
+            print(f"scale {extra['metres_per_pixel'] * 1e3:.4f} mm/px, surface row {extra['surface_row_px']:.1f} px")
+    return 0 if result.converged else 1

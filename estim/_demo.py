@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SEED", "SEED_SCENE", "run_demo", "format_summary"]
+__all__ = ["DEMO_TRACKS", "SEED", "SEED_SCENE", "run_demo", "format_summary"]
 
 SEED_SCENE = Path(__file__).resolve().parent.parent / "data" / "scenes" / "stairs.xml"
+DEMO_TRACKS = Path(__file__).resolve().parent.parent / "data" / "tracks" / "stairs_demo.csv"
 
 # The seed experiment: restitution per ball, shared tangential coefficient and release
 # velocity, simulated over [0, T_END]. Release positions come from the scene file.

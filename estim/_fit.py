@@ -9,9 +9,11 @@ The pipeline, per ball (all balls of a data set run together, batched with ``vma
 2. **Grow the time window**: fit the data up to the third resolved bounce first, then all.
 3. **Minimise a robust loss** ``sum rho(r / s)`` (``estim._loss``) in unconstrained
    coordinates (``e = sigmoid(a)``, ``mu_t = sigmoid(b)``: constraints by
-   reparametrisation, never by clipping) with optax's L-BFGS and its zoom line search, then
-   polish with Levenberg-Marquardt on the iteratively reweighted residuals, which converges
-   quadratically near the optimum.
+   reparametrisation, never by clipping) with Levenberg-Marquardt on the iteratively
+   reweighted residuals, written as an optax gradient transformation
+   (``estim._levenberg_marquardt``). With a handful of parameters per ball, the Jacobian
+   comes from forward-mode autodiff (``jax.jacfwd``) in the same pass as the residuals, one
+   simulation per iteration; near the optimum the method converges quadratically.
 4. **Check the noise floor**: the rms residual of the inliers must match the noise level
    read from the data (second differences within flights); if it does not, restart from
    perturbed starting values and keep the best. The report says when the floor is not
@@ -34,10 +36,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from ._config import require_x64
 from ._initial import Initial, initial_guess
+from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
 from ._params import Params
 from ._scene import Scene
@@ -96,69 +98,46 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, max_segments: int):
 
 
 def _residuals(scene, phi, problem, max_segments):
-    pos, (_, _, ts) = _simulate_at(scene, phi, problem, max_segments)
-    valid = problem.mask & (problem.t >= phi[PARAMETERS.index("t0")])[:, None]
-    return jnp.where(valid, pos - problem.obs, 0.0).reshape(-1), valid.reshape(-1)
-
-
-def _fit_one(scene, free, loss, lbfgs_steps, lm_steps, max_segments, theta0, problem):
-    """Robust L-BFGS then Levenberg-Marquardt for one ball; returns theta and loss history."""
-
-    def res(theta):
-        return _residuals(scene, _to_physical(theta, free, problem.fixed), problem, max_segments)[0]
-
-    def objective(theta):
-        return jnp.sum(robust_loss(res(theta) / problem.scale, loss))
-
-    opt = optax.lbfgs()
-    value_and_grad = optax.value_and_grad_from_state(objective)
-
-    def lbfgs_step(carry, _):
-        theta, state = carry
-        value, grad = value_and_grad(theta, state=state)
-        grad = jnp.where(jnp.isfinite(grad), grad, 0.0)
-        updates, state = opt.update(grad, state, theta, value=value, grad=grad, value_fn=objective)
-        theta_new = optax.apply_updates(theta, updates)
-        theta_new = jnp.where(jnp.all(jnp.isfinite(theta_new)), theta_new, theta)
-        return (theta_new, state), value
-
-    (theta, _), history_lbfgs = jax.lax.scan(lbfgs_step, (theta0, opt.init(theta0)), None, length=lbfgs_steps)
-
-    def lm_step(carry, _):
-        theta, lam = carry
-        r = res(theta)
-        J = jax.jacfwd(res)(theta)
-        w = robust_weight(r / problem.scale, loss)
-        Jw, rw = J * jnp.sqrt(w)[:, None], r * jnp.sqrt(w)
-        H = Jw.T @ Jw
-        g = Jw.T @ rw
-        damp = lam * (jnp.diag(H) + 1e-12)
-        step = -jnp.linalg.solve(H + jnp.diag(damp), g)
-        current = objective(theta)
-        trial = objective(theta + step)
-        better = jnp.isfinite(trial) & (trial < current)
-        theta = jnp.where(better, theta + step, theta)
-        lam = jnp.where(better, lam / 3.0, lam * 4.0)
-        return (theta, lam), jnp.minimum(current, jnp.where(better, trial, current))
-
-    (theta, lam), history_lm = jax.lax.scan(lm_step, (theta, jnp.asarray(1e-3)), None, length=lm_steps)
-    return theta, jnp.concatenate([history_lbfgs, history_lm]), lam
-
-
-def _diagnose(scene, free, loss, max_segments, theta, problem):
-    """Residuals, robust weights and the Jacobian w.r.t. the physical parameters."""
-    phi = _to_physical(theta, free, problem.fixed)
-    idx = _index(free)
-
-    def res_phys(values):
-        return _residuals(scene, phi.at[idx].set(values), problem, max_segments)
-
-    (r, valid) = res_phys(phi[idx])
-    J = jax.jacfwd(lambda v: res_phys(v)[0])(phi[idx])
-    w = robust_weight(r / problem.scale, loss)
+    """Masked residuals (flattened), which entries are valid, model positions, impacts."""
     pos, (segs, decisions, ts) = _simulate_at(scene, phi, problem, max_segments)
+    valid = problem.mask & (problem.t >= phi[PARAMETERS.index("t0")])[:, None]
+    r = jnp.where(valid, pos - problem.obs, 0.0).reshape(-1)
     events = list_events(segs, decisions, phi[0], phi[1], scene.gravity, 64)
-    return phi, r, valid, w, J, pos, events
+    impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts)))
+    return r, (valid.reshape(-1), pos, impacts)
+
+
+def _fit_one(scene, free, loss, steps, max_segments, theta0, problem):
+    """Levenberg-Marquardt on the robust loss for one ball.
+
+    Returns the best point, the loss history, and the residuals, Jacobian (with respect to
+    theta), validity mask, model positions and impact count at the best point.
+    """
+
+    def evaluate(theta):
+        r, aux = _residuals(scene, _to_physical(theta, free, problem.fixed), problem, max_segments)
+        return r, (r, aux)
+
+    opt = levenberg_marquardt()
+
+    def step(carry, _):
+        theta, state, best = carry
+        J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
+        u = r / problem.scale
+        value = jnp.sum(robust_loss(u, loss))
+        value = jnp.where(jnp.all(jnp.isfinite(J)), value, jnp.inf)
+        improved = value < state.best_value
+        best = jax.tree.map(lambda new, old: jnp.where(improved, new, old), (r, J, aux), best)
+        updates, state = opt.update(
+            None, state, theta, jacobian=J, residuals=r, weights=robust_weight(u, loss), value=value
+        )
+        return (theta + updates, state, best), jnp.minimum(value, state.best_value)
+
+    r0, aux0 = jax.eval_shape(lambda th: evaluate(th)[1], theta0)
+    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), (r0, aux0))
+    best = (zeros[0], jnp.zeros(r0.shape + theta0.shape), zeros[1])
+    (_, state, best), history = jax.lax.scan(step, (theta0, opt.init(theta0), best), None, length=steps)
+    return state.best_params, history, best
 
 
 @dataclass
@@ -226,8 +205,7 @@ def fit(
     free: tuple[str, ...] = DEFAULT_FREE,
     fixed: dict[str, dict[str, float]] | None = None,
     loss: str = "cauchy",
-    lbfgs_steps: int = 25,
-    lm_steps: int = 25,
+    steps: int = 30,
     restarts: int = 4,
     max_segments: int = 48,
     progress: Callable[[str], None] | None = None,
@@ -263,10 +241,11 @@ def fit(
     for b in names:
         spec = scene.ball(b)
         t, pos = (np.asarray(a, dtype=np.float64) for a in data[b])
-        init = initial_guess(t, pos[:, 0], pos[:, 2], g)
+        release = fixed.get(b, {}).get("t0", 0.0)
+        init = initial_guess(t, pos[:, 0], pos[:, 2], g, release_time=release)
         inits.append(init)
         values = dict(e=init.e, mu_t=init.mu_t, vx0=init.vx0, x0=init.x0, z0=init.z0,
-                      vz0=0.0, t0=0.0, y0=spec.position[1], vy0=0.0)
+                      vz0=0.0, t0=release, y0=spec.position[1], vy0=0.0)
         if "vz0" in free:
             values["vz0"] = init.vz0
         y = pos[:, 1][np.isfinite(pos[:, 1])]
@@ -288,8 +267,8 @@ def fit(
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
             f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
     batch = jax.tree.map(lambda *xs: jnp.stack(xs), *problems)
-    run = _compiled(scene, tuple(free), loss, lbfgs_steps, lm_steps, max_segments)
-    diagnose = _compiled_diagnose(scene, tuple(free), loss, max_segments)
+    def run(theta, problems):
+        return _run(scene, tuple(free), loss, steps, max_segments, theta, problems)
 
     # Growing window: first up to the third resolved bounce, then everything.
     windows = []
@@ -301,8 +280,7 @@ def fit(
         early = eqx.tree_at(lambda p: p.mask, batch, batch.mask & (batch.t <= jnp.asarray(windows)[:, None])[..., None])
         theta, _, _ = run(theta, early)
     say("fitting all data")
-    theta, history, _ = run(theta, batch)
-    diag = diagnose(theta, batch)
+    theta, history, diag = run(theta, batch)
     floors = [_at_floor(diag, i, problems[i]) for i in range(len(names))]
     best_theta, best_diag, best_hist = theta, diag, history
     rng = np.random.default_rng(0)
@@ -320,30 +298,33 @@ def fit(
                         phi[k] = phi[k] + spread * rng.uniform(-1, 1)
                 phi[:2] = np.clip(phi[:2], 0.02, 0.995)
                 trial[i] = np.asarray(_to_theta(jnp.asarray(phi), free))
-        theta_t, hist_t, _ = run(jnp.asarray(trial), batch)
-        diag_t = diagnose(theta_t, batch)
+        theta_t, hist_t, diag_t = run(jnp.asarray(trial), batch)
         for i in range(len(names)):
             if _objective(diag_t, i, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
                 best_theta = best_theta.at[i].set(theta_t[i])
                 best_hist = best_hist.at[i].set(hist_t[i])
-        best_diag = diagnose(best_theta, batch)
+                best_diag = jax.tree.map(lambda x, y, i=i: x.at[i].set(y[i]), best_diag, diag_t)
         floors = [_at_floor(best_diag, i, problems[i]) for i in range(len(names))]
     results = {}
     for i, b in enumerate(names):
-        results[b] = _report(b, free, best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i])
+        results[b] = _report(b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i])
     return FitResult(results)
 
 
 def _objective(diag, i, loss, problem):
-    _, r, valid, *_ = diag
+    r, _, (valid, _, _) = diag
     return float(jnp.sum(jnp.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
 
 
 def _inliers(diag, i, problem):
-    _, r, valid, *_ = diag
+    """Residuals, validity, and the inliers: within 4 robust standard deviations (1.4826
+    MAD of the valid residuals, floored at the noise level read from the data)."""
+    r, _, (valid, _, _) = diag
     r, valid = np.asarray(r[i]), np.asarray(valid[i])
-    s = float(problem.scale)
-    keep = valid & (np.abs(r) <= 5 * s)
+    rv = r[valid]
+    mad = 1.4826 * np.median(np.abs(rv - np.median(rv))) if rv.size else 0.0
+    s = max(float(mad), float(problem.scale))
+    keep = valid & (np.abs(r) <= 4 * s)
     return r, valid, keep
 
 
@@ -354,34 +335,23 @@ def _at_floor(diag, i, problem) -> bool:
 
 
 @eqx.filter_jit
-def _run(scene, free, loss, lbfgs_steps, lm_steps, max_segments, theta, batch):
-    fn = lambda th, pr: _fit_one(scene, free, loss, lbfgs_steps, lm_steps, max_segments, th, pr)  # noqa: E731
+def _run(scene, free, loss, steps, max_segments, theta, batch):
+    fn = lambda th, pr: _fit_one(scene, free, loss, steps, max_segments, th, pr)  # noqa: E731
     return jax.vmap(fn)(theta, batch)
 
 
-@eqx.filter_jit
-def _run_diagnose(scene, free, loss, max_segments, theta, batch):
-    fn = lambda th, pr: _diagnose(scene, free, loss, max_segments, th, pr)  # noqa: E731
-    return jax.vmap(fn)(theta, batch)
-
-
-def _compiled(scene, free, loss, lbfgs_steps, lm_steps, max_segments):
-    return lambda theta, batch: _run(scene, free, loss, lbfgs_steps, lm_steps, max_segments, theta, batch)
-
-
-def _compiled_diagnose(scene, free, loss, max_segments):
-    return lambda theta, batch: _run_diagnose(scene, free, loss, max_segments, theta, batch)
-
-
-def _report(ball, free, diag, i, problem, init, history, at_floor) -> BallFit:
-    phi, r, valid, w, J, pos, events = (x[i] if hasattr(x, "shape") else jax.tree.map(lambda a: a[i], x) for x in diag)
-    phi = np.asarray(phi)
+def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor) -> BallFit:
+    r, J, (_, pos, impacts) = jax.tree.map(lambda a: np.asarray(a[i]), diag)
+    phi = np.asarray(_to_physical(jnp.asarray(theta), free, problem.fixed))
+    # Jacobian with respect to the physical parameters: d theta / d phi per column.
+    dphi = np.array([phi[PARAMETERS.index(n)] * (1 - phi[PARAMETERS.index(n)]) if n in _BOUNDED else 1.0 for n in free])
+    J = J / dphi[None, :]
+    w = np.asarray(robust_weight(jnp.asarray(r) / problem.scale, loss))
     r_all, valid_np, keep = _inliers(diag, i, problem)
     n_obs = int(np.asarray(problem.mask).any(axis=1).sum())
     rms = math.sqrt(np.mean(r_all[keep] ** 2)) if keep.any() else math.nan
     # Gauss-Newton covariance with robust weights and the residual noise estimate.
-    J = np.asarray(J)
-    w = np.asarray(w) * valid_np
+    w = w * valid_np
     Jw = J * np.sqrt(w)[:, None]
     dof = max(int(valid_np.sum()) - len(free), 1)
     s2 = float(np.sum(w * r_all**2) / dof)
@@ -413,7 +383,7 @@ def _report(ball, free, diag, i, problem, init, history, at_floor) -> BallFit:
             corr[np.ix_(ids, ids)] = sub
         except np.linalg.LinAlgError:
             notes.append("the Gauss-Newton matrix is singular: no standard errors")
-    n_imp = int(np.sum((np.asarray(events.kind) == IMPACT) & (np.asarray(events.t) <= float(np.max(np.asarray(problem.t))))))
+    n_imp = int(impacts)
     improvement = np.abs(np.diff(history[-4:])) if len(history) >= 4 else np.array([np.inf])
     converged = bool(np.all(np.isfinite(history[-1:])) and np.all(improvement <= 1e-6 * max(abs(history[-1]), 1.0)))
     if not at_floor:

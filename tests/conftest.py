@@ -84,7 +84,7 @@ def padded_params(e, mu_t, radius, position, velocity, n: int = B) -> tuple[esti
         np.broadcast_to(velocity, (k, 3)),
     ]
     shapes = [(), (), (), (3,), (3,)]
-    padded = [_pad_rows(a, n, s) for a, s in zip(arrays, shapes)]
+    padded = [_pad_rows(a, n, s) for a, s in zip(arrays, shapes, strict=True)]
     return estim.Params(*padded), k
 
 
@@ -163,8 +163,14 @@ def jac_args(e, mu_t, radius, position, velocity, t_end, ts=None):
     theta = jnp.stack([params.e, params.mu_t, params.velocity[:, 0]], axis=1)
     if ts is None:
         ts = np.linspace(0.0, t_end, NT)
-    return (theta, params.radius, params.position, params.velocity,
-            jnp.asarray(float(t_end)), padded_ts(ts)), k
+    return (
+        theta,
+        params.radius,
+        params.position,
+        params.velocity,
+        jnp.asarray(float(t_end)),
+        padded_ts(ts),
+    ), k
 
 
 def l1_depth(position, centre, half):
@@ -192,9 +198,22 @@ def yard() -> estim.Scene:
 def kit():
     """The helpers of this module, for tests that prefer a fixture to an import."""
     return types.SimpleNamespace(
-        B=B, NT=NT, G=G, run=run, padded_params=padded_params, padded_ts=padded_ts,
-        jac_outputs=jac_outputs, grad_final_x=grad_final_x, jac_args=jac_args,
-        evaluate=evaluate, seed_arrays=seed_arrays, seed_params=seed_params,
-        seed_release=seed_release, l1_depth=l1_depth,
-        SEED_T_END=SEED_T_END, SEED_MU=SEED_MU, SEED_VX=SEED_VX, SEED_E=SEED_E,
+        B=B,
+        NT=NT,
+        G=G,
+        run=run,
+        padded_params=padded_params,
+        padded_ts=padded_ts,
+        jac_outputs=jac_outputs,
+        grad_final_x=grad_final_x,
+        jac_args=jac_args,
+        evaluate=evaluate,
+        seed_arrays=seed_arrays,
+        seed_params=seed_params,
+        seed_release=seed_release,
+        l1_depth=l1_depth,
+        SEED_T_END=SEED_T_END,
+        SEED_MU=SEED_MU,
+        SEED_VX=SEED_VX,
+        SEED_E=SEED_E,
     )

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 from conftest import (
-    B,
     NT,
+    B,
     G,
     jac_args,
     jac_outputs,
@@ -52,7 +52,7 @@ def ball(draw):
 
 def batches(max_size=B):
     return st.lists(ball(), min_size=1, max_size=max_size).map(
-        lambda balls: tuple(np.array(a, dtype=np.float64) for a in zip(*balls))
+        lambda balls: tuple(np.array(a, dtype=np.float64) for a in zip(*balls, strict=True))
     )
 
 
@@ -83,7 +83,7 @@ def _check_batch(stairs, batch, traj, k, done):
     listed = np.arange(ev_t.shape[1])[None, :] < count[:, None]
     assert np.all(np.isfinite(ev_t[listed])) and np.all(np.isinf(ev_t[~listed]))
     assert np.all((ev_t[listed] >= 0) & (ev_t[listed] <= T_END))
-    for t, n in zip(ev_t, count):
+    for t, n in zip(ev_t, count, strict=True):
         assert np.all(np.diff(t[:n]) >= 0)
     # Never inside a solid: L1 distance from every tread >= r, centre >= r above ground.
     for pts in (fin_p[:, None, :], smp_p):
@@ -118,15 +118,24 @@ def test_every_ball_reaches_t_end(stairs, batch):
     assert np.all(np.asarray(traj.complete[:k]))
 
 
-@settings(max_examples=60, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(
+    max_examples=60,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 @given(batch=batches(), where=st.integers(0, B - 1))
 def test_alone_or_in_a_batch_is_identical(stairs, batch, where):
     """Ball 0 simulated alone (batch shape ()) and at position ``where`` of a batch of B
     gives bit-identical arrays."""
     e, mu, r, pos, vel = batch
-    alone = estim.simulate(stairs, estim.Params(e[0], mu[0], r[0], pos[0], vel[0]), T_END,
-                           ts=padded_ts(TS), throw=False)
+    alone = estim.simulate(
+        stairs,
+        estim.Params(e[0], mu[0], r[0], pos[0], vel[0]),
+        T_END,
+        ts=padded_ts(TS),
+        throw=False,
+    )
     order = list(range(1, len(e)))
     order.insert(min(where, len(order)), 0)
     order = order[:B]
@@ -149,8 +158,12 @@ def test_alone_or_in_a_batch_is_identical(stairs, batch, where):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-@settings(max_examples=25, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(
+    max_examples=25,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 @given(batch=batches())
 def test_jacobian_is_finite(stairs, batch):
     """jax.jacfwd of final state, event times and samples w.r.t. (e, mu_t, vx0) is finite

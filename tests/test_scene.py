@@ -42,8 +42,12 @@ def test_load_stairs(stairs):
     np.testing.assert_allclose(float(stairs.gravity), 9.81, rtol=0, atol=1e-15)
     k = np.arange(5)
     top = 1.40 - 0.2 * k
-    np.testing.assert_allclose(np.asarray(stairs.box_centre), np.stack([0.6 * k, 0 * k, top / 2], 1), atol=1e-12)
-    np.testing.assert_allclose(np.asarray(stairs.box_half), np.stack([0.3 + 0 * k, 0.6 + 0 * k, top / 2], 1), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(stairs.box_centre), np.stack([0.6 * k, 0 * k, top / 2], 1), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(stairs.box_half), np.stack([0.3 + 0 * k, 0.6 + 0 * k, top / 2], 1), atol=1e-12
+    )
     np.testing.assert_allclose(np.asarray(stairs.plane_normal), [[0.0, 0.0, 1.0]], atol=0)
     np.testing.assert_allclose(np.asarray(stairs.plane_offset), [0.0], atol=0)
     balls = {b.name: b for b in stairs.balls}
@@ -89,8 +93,12 @@ def test_inline_scene(tmp_path):
     {BALL}"""
     scene = estim.load_scene(write(tmp_path, body, option='<option gravity="0 0 -3.7"/>'))
     assert scene.names == ("block", "turned", "floor")
-    np.testing.assert_allclose(np.asarray(scene.box_half), [[0.5, 0.25, 0.25], [0.2, 0.1, 0.5]], atol=1e-12)
-    np.testing.assert_allclose(np.asarray(scene.box_centre), [[1, 0, 0.25], [-1, 0, 0.5]], atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(scene.box_half), [[0.5, 0.25, 0.25], [0.2, 0.1, 0.5]], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(scene.box_centre), [[1, 0, 0.25], [-1, 0, 0.5]], atol=1e-12
+    )
     assert float(scene.gravity) == pytest.approx(3.7, abs=1e-12)
     assert scene.balls == (estim.Ball("ball", 0.05, pytest.approx(0.1), (0.0, 0.0, 1.0)),)
 
@@ -98,10 +106,18 @@ def test_inline_scene(tmp_path):
 @pytest.mark.parametrize(
     ("geom", "assets", "name", "words"),
     [
-        ('<geom name="tilted" type="box" size="0.3 0.3 0.3" pos="0 0 0.3" quat="0.9238795 0 0 0.3826834"/>',
-         "", "tilted", "rotated"),
-        ('<geom name="rock" type="mesh" mesh="tet"/>',
-         '<mesh name="tet" vertex="0 0 0  1 0 0  0 1 0  0 0 1"/>', "rock", "mesh"),
+        (
+            '<geom name="tilted" type="box" size="0.3 0.3 0.3" pos="0 0 0.3" quat="0.9238795 0 0 0.3826834"/>',
+            "",
+            "tilted",
+            "rotated",
+        ),
+        (
+            '<geom name="rock" type="mesh" mesh="tet"/>',
+            '<mesh name="tet" vertex="0 0 0  1 0 0  0 1 0  0 0 1"/>',
+            "rock",
+            "mesh",
+        ),
         ('<geom name="pipe" type="capsule" size="0.1 0.5" pos="0 0 1"/>', "", "pipe", "capsule"),
         ('<geom name="boulder" type="sphere" size="0.3" pos="1 1 0.3"/>', "", "boulder", "sphere"),
         ('<geom name="slope" type="plane" size="5 5 0.1" euler="20 0 0"/>', "", "slope", "normal"),

@@ -1,0 +1,119 @@
+"""The fit job behind ``estim fit`` and ``estim demo``: read, fit, report, plot."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+from ._fit import FitResult, fit
+from ._scene import Scene, load_scene
+from ._tracks import (
+    estimate_pixel_scale,
+    estimate_surface_row,
+    fit_flights,
+    read_pixel_track,
+    read_tracks_csv,
+)
+
+
+def _progress(stream=sys.stderr):
+    start = time.perf_counter()
+
+    def say(msg: str) -> None:
+        print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=stream, flush=True)
+
+    return say
+
+
+def format_table(result: FitResult) -> str:
+    """One row per ball: e, mu_t, vx0 with standard errors, rms, samples, bounces, status."""
+
+    def pm(bf, name):
+        v, s = bf.values[name], bf.stderr.get(name, math.nan)
+        return f"{v:.4f} +- {s:.4f}" if math.isfinite(s) else f"{v:.4f} (n/a)"
+
+    head = f"{'ball':<10} {'e':>17} {'mu_t':>17} {'vx0 (m/s)':>17} {'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
+    rows = [head, "-" * len(head)]
+    for ball, bf in result.balls.items():
+        status = "converged" if bf.converged else "NOT converged"
+        if not bf.at_noise_floor:
+            status += ", above noise floor"
+        rows.append(
+            f"{ball:<10} {pm(bf, 'e'):>17} {pm(bf, 'mu_t'):>17} {pm(bf, 'vx0'):>17} "
+            f"{bf.rms_m * 1e3:9.2f} {bf.n_obs:5d} {bf.n_bounces:7d}  {status}"
+        )
+        rows.extend(f"{'':<10} note: {n}" for n in bf.notes)
+    return "\n".join(rows)
+
+
+def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = None) -> dict:
+    """fit.json and the plots (fit.png, residuals.png, loss.png) into ``out_dir``."""
+    from ._plots import plot_fit, plot_loss_history, plot_residuals
+
+    os.makedirs(out_dir, exist_ok=True)
+    payload = result.to_json()
+    payload.update(extra or {})
+    with open(os.path.join(out_dir, "fit.json"), "w") as f:
+        json.dump(payload, f, indent=2)
+    plot_fit(data, result, os.path.join(out_dir, "fit.png"))
+    plot_residuals(data, result, os.path.join(out_dir, "residuals.png"))
+    plot_loss_history(result, os.path.join(out_dir, "loss.png"))
+    return payload
+
+
+def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
+    """Fit a tracks CSV: returns (result, data) with data ``ball -> (t, position)``."""
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    tracks = read_tracks_csv(tracks_path, scene=scene)
+    data = {b: (tracks.t[b], tracks.position[b]) for b in tracks.balls}
+    result = fit(scene, data, progress=say, **options)
+    result.source = os.fspath(tracks_path)
+    return result, data
+
+
+def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
+               metres_per_pixel: float | None = None, say=None, **options):
+    """Fit a pixel track (``a;b;`` lines): scale from gravity unless given, surface row
+    from where consecutive flights meet. Returns (result, data, metres_per_pixel, surface_row)."""
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    spec = scene.ball(ball)
+    track = read_pixel_track(path, frame_interval=frame_interval, ball=ball)
+    if metres_per_pixel is None:
+        scale = estimate_pixel_scale(track, frame_interval)
+        metres_per_pixel = scale.metres_per_pixel
+        if say:
+            say(f"scale from gravity: {metres_per_pixel * 1e3:.4f} +- {scale.stderr * 1e3:.4f} mm/px")
+    rows = estimate_surface_row(track, metres_per_pixel=metres_per_pixel, radius=spec.radius)
+    surface_row = rows.surface_row
+    # The surface of the scene: the highest upward face under the ball.
+    tracks = track.to_metres(metres_per_pixel, surface_row)
+    t, pos = tracks.t[ball], tracks.position[ball].copy()
+    pos[:, 2] += _surface_height(scene)
+    pos[:, 1] = np.nan
+    # Frames before the release (the ball still in the hand) are not part of the motion.
+    _, flights = fit_flights(track.t, track.b)
+    release = flights[0].start if flights else 0
+    if say and release:
+        say(f"release at frame {release}: the {release} frames before it are not fitted")
+    t, pos = t[release:], pos[release:]
+    pos[:, 0] -= pos[0, 0] if np.isfinite(pos[0, 0]) else 0.0
+    t0 = float(t[0])
+    fixed = {ball: {"t0": t0, "y0": spec.position[1]}}
+    free = options.pop("free", ("e", "mu_t", "vx0", "vz0", "x0", "z0"))
+    result = fit(scene, {ball: (t, pos)}, free=free, fixed=fixed, progress=say, **options)
+    result.source = os.fspath(path)
+    return result, {ball: (t, pos)}, metres_per_pixel, surface_row
+
+
+def _surface_height(scene: Scene) -> float:
+    """Top of the highest box, or the highest upward plane (the drop scene's table)."""
+    tops = list(np.asarray(scene.box_centre[:, 2] + scene.box_half[:, 2]))
+    for n, s in zip(np.asarray(scene.plane_normal), np.asarray(scene.plane_offset), strict=True):
+        if n[2] > 0.5:
+            tops.append(float(s))
+    return float(max(tops))
