@@ -5,6 +5,7 @@ event-time sensitivities, in float64 (importing estim switches JAX's x64 mode on
 """
 
 from . import _config  # noqa: F401  (switches on float64 first)
+from ._config import enable_compilation_cache as enable_compilation_cache
 from ._fit import BallFit as BallFit
 from ._fit import FitResult as FitResult
 from ._fit import fit as fit

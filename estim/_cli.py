@@ -115,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ._config import enable_compilation_cache
+
+    enable_compilation_cache()
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse's own errors exit with status 2
     try:

@@ -103,7 +103,7 @@ def _residuals(scene, phi, problem, max_segments):
     valid = problem.mask & (problem.t >= phi[PARAMETERS.index("t0")])[:, None]
     r = jnp.where(valid, pos - problem.obs, 0.0).reshape(-1)
     events = list_events(segs, decisions, phi[0], phi[1], scene.gravity, 64)
-    impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts)))
+    impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts))).astype(jnp.int32)
     return r, (valid.reshape(-1), pos, impacts)
 
 
@@ -133,9 +133,12 @@ def _fit_one(scene, free, loss, steps, max_segments, theta0, problem):
         )
         return (theta + updates, state, best), jnp.minimum(value, state.best_value)
 
-    r0, aux0 = jax.eval_shape(lambda th: evaluate(th)[1], theta0)
-    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), (r0, aux0))
-    best = (zeros[0], jnp.zeros(r0.shape + theta0.shape), zeros[1])
+    m = problem.obs.size  # residuals per ball; shapes written out to avoid a second trace
+    best = (
+        jnp.zeros(m),
+        jnp.zeros((m,) + theta0.shape),
+        (jnp.zeros(m, bool), jnp.zeros(problem.obs.shape), jnp.zeros((), jnp.int32)),
+    )
     (_, state, best), history = jax.lax.scan(step, (theta0, opt.init(theta0), best), None, length=steps)
     return state.best_params, history, best
 

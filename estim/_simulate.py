@@ -75,13 +75,28 @@ def simulate(
         if not np.all(np.isfinite(tv)) or np.any(tv < 0) or np.any(tv > float(t_end)):
             raise ValueError(f"ts must be finite and lie in [0, t_end={float(t_end)}]")
     _check_outside(scene, params)
-    return _simulate(scene, params, t_end, ts, max_segments, max_events, throw)
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((scene, params, t_end, ts)))
+    # Called with concrete values, the inputs were checked above and completion is checked
+    # below, in Python: the compiled program then has no host callbacks and can live in
+    # JAX's persistent compilation cache. Inside a user's jit/grad the checks run in-graph.
+    traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced)
+    if throw and not traced and not bool(np.all(np.asarray(traj.complete))):
+        raise RuntimeError(_INCOMPLETE)
+    return traj
+
+
+_INCOMPLETE = (
+    "a ball needed more closed-form segments than max_segments; increase max_segments "
+    "(this happens for balls trapped between walls, not for Zeno bounce series, which are "
+    "summed exactly), or pass throw=False and inspect Trajectory.complete"
+)
 
 
 @eqx.filter_jit
-def _simulate(scene, params, t_end, ts, max_segments, max_events, throw):
+def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     batch = params.batch_shape
-    params = check_runtime(params, t_end)
+    if checks:
+        params = check_runtime(params, t_end)
 
     def flatten(x, event_shape):
         return jnp.broadcast_to(x, batch + event_shape).reshape((-1,) + event_shape)
@@ -101,13 +116,8 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, throw):
         return pos, vel, events, final, segments, pl.decisions, pl.complete
 
     pos, vel, events, final, segments, decisions, complete = jax.vmap(one)(flat)
-    if throw:
-        pos = eqx.error_if(
-            pos, ~jnp.all(complete),
-            "a ball needed more closed-form segments than max_segments; increase "
-            "max_segments (this happens for balls trapped between walls, not for Zeno "
-            "bounce series, which are summed exactly)",
-        )
+    if checks:
+        pos = eqx.error_if(pos, ~jnp.all(complete), _INCOMPLETE)
 
     def unflat(x):
         return x.reshape(batch + x.shape[1:])
@@ -132,8 +142,9 @@ def _check_outside(scene: Scene, params: Params) -> None:
     leaves = (params.position, params.radius, scene.box_centre)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return
-    p = np.asarray(params.position).reshape(-1, 3)
-    r = np.broadcast_to(np.asarray(params.radius), np.asarray(params.position).shape[:-1]).reshape(-1)
+    batch = params.batch_shape
+    p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
+    r = np.broadcast_to(np.asarray(params.radius), batch).reshape(-1)
     c, h = np.asarray(scene.box_centre), np.asarray(scene.box_half)
     depth = np.sum(np.maximum(np.abs(p[:, None, :] - c[None]) - h[None], 0.0), axis=-1)
     inside_box = depth < r[:, None] - 1e-9
