@@ -8,13 +8,14 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
 
 from ._demo import SEED, default_scene_path
 
-__all__ = ["run_speed", "format_speed", "TARGETS", "REFERENCE"]
+__all__ = ["run_speed", "format_speed", "run_fit_bench", "format_fit_bench", "TARGETS", "REFERENCE"]
 
 # Targets of the issue; "le" = at most, "lt" = below, "ge" = at least.
 TARGETS = {
@@ -64,12 +65,15 @@ def _median_us(fn, arg, repeats: int, warmup: int = 3) -> float:
     return statistics.median(times) * 1e6
 
 
-def _first_call(scene_path: str) -> dict:
+def _first_call(scene_path: str, cache_dir: str | None = None) -> dict:
     cmd = [
         sys.executable, "-c", _FIRST_CALL, scene_path, json.dumps(SEED["e"]),
         str(SEED["mu_t"]), json.dumps(list(SEED["velocity"])), str(SEED["t_end"]),
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    env = dict(os.environ)
+    if cache_dir:
+        cmd[2] = "import estim; estim.enable_compilation_cache(" + repr(cache_dir) + ")\n" + _FIRST_CALL
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     if proc.returncode != 0:
         raise RuntimeError(f"first-call subprocess failed:\n{proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -84,8 +88,13 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
               seed: int = 0) -> dict:
     """Measure the figures of ``estim bench speed`` and return them as a dict."""
     scene_path = scene_path or default_scene_path()
-    # First: the fresh-process first call, before this process compiles anything.
+    # First: the fresh-process first call, before this process compiles anything; then the
+    # same with JAX's persistent compilation cache (as the estim command uses it), warmed
+    # by one run in another process.
     first = _first_call(scene_path)
+    with tempfile.TemporaryDirectory() as cache:
+        _first_call(scene_path, cache)
+        first_cached = _first_call(scene_path, cache)
 
     import jax
     import jax.numpy as jnp
@@ -136,6 +145,7 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         "gradient_us": gradient_us,
         "gradient": dict(zip(("e", "mu_t", "vx0"), gradient_value, strict=True)),
         "first_call_s": first["first_call_s"],
+        "first_call_cached_s": first_cached["first_call_s"],
         "import_s": first["import_s"],
         "batch": batch,
         "batch_us": batch_us,
@@ -175,6 +185,7 @@ def format_speed(r: dict) -> str:
         row("first call, fresh process (s)", f"{r['first_call_s']:.3f}", "first_call_s"),
         row(f"batch {r['batch']} golf (balls/s)", f"{r['batch_balls_per_s']:.3g}", "batch_balls_per_s"),
         "",
+        f"first call with the persistent compilation cache warm: {r['first_call_cached_s']:.3f} s",
         f"forward without jit (estim.simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
         f"batch of {r['batch']}: {r['batch_us']:.1f} us/call "
         f"({r['batch_incomplete']} balls incomplete within max_segments); "
@@ -185,3 +196,63 @@ def format_speed(r: dict) -> str:
         f"jax {r['machine']['jax']} ({r['machine']['backend']}); median of {r['repeats']} calls",
     ]
     return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- bench fit
+
+FIT_TARGETS = {"cli_cold_s": 15.0, "cli_warm_s": 15.0, "steady_s": 0.5}
+
+
+def _cli_fit_seconds(tracks: str, scene_path: str, out: str, env: dict) -> float:
+    t = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "estim", "fit", tracks, "--scene", scene_path, "--out", out],
+        capture_output=True, text=True, env=env, check=False,
+    )
+    seconds = time.perf_counter() - t
+    if proc.returncode not in (0, 1) or not os.path.isfile(os.path.join(out, "fit.json")):
+        raise RuntimeError(f"estim fit failed:\n{proc.stderr[-2000:]}")
+    return seconds
+
+
+def run_fit_bench(*, repeats: int = 5, scene_path: str | None = None) -> dict:
+    """``estim fit`` on the bundled tracks from process start to written fit.json, without
+    and with a warm compilation cache, and the steady-state (compiled) fit in-process."""
+    from ._demo import DEMO_TRACKS
+
+    scene_path = scene_path or default_scene_path()
+    tracks = str(DEMO_TRACKS)
+    with tempfile.TemporaryDirectory() as tmp:
+        cold_env = dict(os.environ, ESTIM_NO_CACHE="1")
+        cold = _cli_fit_seconds(tracks, scene_path, os.path.join(tmp, "cold"), cold_env)
+        warm_env = dict(os.environ, ESTIM_CACHE_DIR=os.path.join(tmp, "cache"))
+        _cli_fit_seconds(tracks, scene_path, os.path.join(tmp, "fill"), warm_env)
+        warm = _cli_fit_seconds(tracks, scene_path, os.path.join(tmp, "warm"), warm_env)
+
+    import estim
+
+    from ._job import fit_csv
+
+    scene = estim.load_scene(scene_path)
+    fit_csv(tracks, scene)  # compile
+    times = []
+    for _ in range(max(repeats, 1)):
+        t = time.perf_counter()
+        result, _ = fit_csv(tracks, scene)
+        times.append(time.perf_counter() - t)
+    steady = statistics.median(times)
+    out = {"cli_cold_s": cold, "cli_warm_s": warm, "steady_s": steady,
+           "e": {b: f.values["e"] for b, f in result.balls.items()}}
+    out["targets"] = {k: {"target": f"< {v:g} s", "met": bool(out[k] < v)} for k, v in FIT_TARGETS.items()}
+    return out
+
+
+def format_fit_bench(r: dict) -> str:
+    t = r["targets"]
+    rows = [f"{'metric':<52} {'measured':>10} {'target':>9} {'status':>8}"]
+    for key, name in (("cli_cold_s", "estim fit, bundled tracks, fresh process, no cache (s)"),
+                      ("cli_warm_s", "estim fit, fresh process, compilation cache warm (s)"),
+                      ("steady_s", "fit, compiled, in-process (s)")):
+        rows.append(f"{name:<52} {r[key]:>10.2f} {t[key]['target']:>9} {'met' if t[key]['met'] else 'NOT met':>8}")
+    rows.append("fitted e: " + ", ".join(f"{b} {v:.4f}" for b, v in r["e"].items()))
+    return "\n".join(rows)

@@ -103,6 +103,13 @@ def build_parser() -> argparse.ArgumentParser:
                        help="timed calls per figure (median; default 200)")
     speed.add_argument("--scene", default=None, help="scene file (default: the seed scene)")
     speed.set_defaults(func=_cmd_bench_speed)
+    fitb = bsub.add_parser("fit", help="estim fit on the bundled tracks: cold, cached, steady",
+                           description="Time `estim fit` on the bundled tracks from process "
+                                       "start to written fit.json (no cache, warm cache) and "
+                                       "the compiled fit in-process.")
+    fitb.add_argument("--json", action="store_true", help="print one JSON object")
+    fitb.add_argument("--repeats", type=_positive_int, default=5, help="steady-state repeats")
+    fitb.set_defaults(func=_cmd_bench_fit)
 
     demo = sub.add_parser("demo", help="the main job on the bundled data: fit, table, plots",
                           description="Fit the bundled tracks (data/tracks/stairs_demo.csv): "
@@ -296,6 +303,14 @@ def _cmd_bench_speed(args) -> int:
         print(json.dumps(result))
     else:
         print(format_speed(result))
+    return 0
+
+
+def _cmd_bench_fit(args) -> int:
+    from ._bench import format_fit_bench, run_fit_bench
+
+    result = run_fit_bench(repeats=args.repeats)
+    print(json.dumps(result) if args.json else format_fit_bench(result))
     return 0
 
 
