@@ -270,6 +270,7 @@ def fit(
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
             f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
     batch = jax.tree.map(lambda *xs: jnp.stack(xs), *problems)
+    noises = [float(p.scale) for p in problems]  # read from the data, before any rescaling
     def run(theta, problems):
         return _run(scene, tuple(free), loss, steps, max_segments, theta, problems)
 
@@ -281,10 +282,21 @@ def fit(
     if np.any(np.isfinite(windows)):
         say("fitting the first bounces")
         early = eqx.tree_at(lambda p: p.mask, batch, batch.mask & (batch.t <= jnp.asarray(windows)[:, None])[..., None])
-        theta, _, _ = run(theta, early)
+        theta, _, diag = run(theta, early)
+        # The robust scale: the noise read from the data, or the spread of the residuals of
+        # the early fit if larger (a model that misses some physics must not turn every
+        # sample into an 'outlier').
+        scales = []
+        for i, pr in enumerate(problems):
+            r, valid = np.asarray(diag[0][i]), np.asarray(diag[2][0][i])
+            rv = r[valid]
+            mad = 1.4826 * np.median(np.abs(rv - np.median(rv))) if rv.size else 0.0
+            scales.append(max(float(pr.scale), float(mad)))
+        problems = [eqx.tree_at(lambda p: p.scale, pr, jnp.asarray(s)) for pr, s in zip(problems, scales, strict=True)]
+        batch = eqx.tree_at(lambda p: p.scale, batch, jnp.asarray(scales))
     say("fitting all data")
     theta, history, diag = run(theta, batch)
-    floors = [_at_floor(diag, i, problems[i]) for i in range(len(names))]
+    floors = [_at_floor(diag, i, problems[i], noises[i]) for i in range(len(names))]
     best_theta, best_diag, best_hist = theta, diag, history
     rng = np.random.default_rng(0)
     for attempt in range(restarts):
@@ -294,7 +306,7 @@ def fit(
         trial = np.asarray(best_theta).copy()
         for i, ok in enumerate(floors):
             if not ok:
-                phi = np.asarray(_to_physical(jnp.asarray(starts[i]), free, problems[i].fixed))
+                phi = np.array(_to_physical(jnp.asarray(starts[i]), free, problems[i].fixed))
                 for n, spread in (("e", 0.08), ("mu_t", 0.03), ("vx0", 0.05)):
                     if n in free:
                         k = PARAMETERS.index(n)
@@ -307,10 +319,10 @@ def fit(
                 best_theta = best_theta.at[i].set(theta_t[i])
                 best_hist = best_hist.at[i].set(hist_t[i])
                 best_diag = jax.tree.map(lambda x, y, i=i: x.at[i].set(y[i]), best_diag, diag_t)
-        floors = [_at_floor(best_diag, i, problems[i]) for i in range(len(names))]
+        floors = [_at_floor(best_diag, i, problems[i], noises[i]) for i in range(len(names))]
     results = {}
     for i, b in enumerate(names):
-        results[b] = _report(b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i])
+        results[b] = _report(b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
     return FitResult(results)
 
 
@@ -331,10 +343,11 @@ def _inliers(diag, i, problem):
     return r, valid, keep
 
 
-def _at_floor(diag, i, problem) -> bool:
+def _at_floor(diag, i, problem, noise) -> bool:
+    """The rms of the inliers is within 30% of the noise level read from the data."""
     r, valid, keep = _inliers(diag, i, problem)
     rms = math.sqrt(np.mean(r[keep] ** 2)) if keep.any() else math.inf
-    return rms <= 1.3 * float(problem.scale)
+    return rms <= 1.3 * noise
 
 
 @eqx.filter_jit
@@ -343,12 +356,13 @@ def _run(scene, free, loss, steps, max_segments, theta, batch):
     return jax.vmap(fn)(theta, batch)
 
 
-def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor) -> BallFit:
+def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, noise) -> BallFit:
     r, J, (_, pos, impacts) = jax.tree.map(lambda a: np.asarray(a[i]), diag)
     phi = np.asarray(_to_physical(jnp.asarray(theta), free, problem.fixed))
     # Jacobian with respect to the physical parameters: d theta / d phi per column.
     dphi = np.array([phi[PARAMETERS.index(n)] * (1 - phi[PARAMETERS.index(n)]) if n in _BOUNDED else 1.0 for n in free])
-    J = J / dphi[None, :]
+    at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range
+    J = np.where(at_bound[None, :], 0.0, J / np.where(at_bound, 1.0, dphi)[None, :])
     w = np.asarray(robust_weight(jnp.asarray(r) / problem.scale, loss))
     r_all, valid_np, keep = _inliers(diag, i, problem)
     n_obs = int(np.asarray(problem.mask).any(axis=1).sum())
@@ -369,8 +383,11 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor) 
         involved = np.abs(vt[k]) > 0.3
         identifiable &= ~involved
     identifiable &= col > 1e-9 * max(col.max(), 1e-300)
+    identifiable &= ~at_bound
     for k, n in enumerate(free):
-        if not identifiable[k]:
+        if at_bound[k]:
+            notes.append(f"{n} = {phi[PARAMETERS.index(n)]:.6f} sits on the edge of its range: no standard error")
+        elif not identifiable[k]:
             notes.append(f"{n} is not identifiable from this data" + (" (no bounce observed)" if n in ("e", "mu_t") and not init.bounces else ""))
     stderr = {n: math.nan for n in free}
     corr = np.full((len(free), len(free)), np.nan)
@@ -390,7 +407,7 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor) 
     improvement = np.abs(np.diff(history[-4:])) if len(history) >= 4 else np.array([np.inf])
     converged = bool(np.all(np.isfinite(history[-1:])) and np.all(improvement <= 1e-6 * max(abs(history[-1]), 1.0)))
     if not at_floor:
-        notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {float(problem.scale) * 1e3:.2f} mm read from the data: the fit may sit in a local minimum")
+        notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {noise * 1e3:.2f} mm read from the data: a local minimum, or physics the model lacks (air drag)")
     values = {n: float(phi[PARAMETERS.index(n)]) for n in PARAMETERS}
     t_np = np.asarray(problem.t)
     return BallFit(
@@ -400,7 +417,7 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor) 
         names=tuple(free),
         correlation=corr,
         rms_m=rms,
-        noise_m=float(problem.scale),
+        noise_m=noise,
         n_obs=n_obs,
         n_outliers=int((valid_np & ~keep).reshape(-1, 3).any(axis=1).sum()),
         n_bounces=n_imp,

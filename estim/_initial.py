@@ -108,6 +108,9 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
                 continue
             break
         if np.ptp(z[members]) < 3 * tol:
+            if not flights:  # still in the hand before the release: skip
+                i = j
+                continue
             break  # no vertical motion: the ball rests, or its bounces are no longer resolved
         xc = _line(t[members], x[members])
         flights.append(Flight(float(t[members[0]]), float(t[members[-1]]), tuple(coef), tuple(xc), len(members)))

@@ -11,11 +11,11 @@ import time
 import numpy as np
 
 from ._fit import FitResult, fit
+from ._initial import split_flights
 from ._scene import Scene, load_scene
 from ._tracks import (
     estimate_pixel_scale,
     estimate_surface_row,
-    fit_flights,
     read_pixel_track,
     read_tracks_csv,
 )
@@ -95,9 +95,10 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
     t, pos = tracks.t[ball], tracks.position[ball].copy()
     pos[:, 2] += _surface_height(scene)
     pos[:, 1] = np.nan
-    # Frames before the release (the ball still in the hand) are not part of the motion.
-    _, flights = fit_flights(track.t, track.b)
-    release = flights[0].start if flights else 0
+    # Frames before the release (the ball still in the hand) are not part of the motion:
+    # start at the first resolved flight.
+    flights, _ = split_flights(t, np.nan_to_num(pos[:, 0]), pos[:, 2], float(scene.gravity))
+    release = int(np.searchsorted(t, flights[0].start)) if flights else 0
     if say and release:
         say(f"release at frame {release}: the {release} frames before it are not fitted")
     t, pos = t[release:], pos[release:]
