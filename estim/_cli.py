@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--metres-per-pixel", type=_finite, default=None,
                      help="pixel scale; default: estimated from gravity")
     fit.add_argument("--ball", default=None, help="the ball of a pixel track (with --pixels)")
+    fit.add_argument("--from-bounce", type=int, default=0,
+                     help="with --pixels: fit only the data after this bounce (default 0: from "
+                          "the release); leaves out the fastest flights, where drag matters most")
     fit.set_defaults(func=_cmd_fit)
 
     bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks.")
@@ -322,7 +325,7 @@ def _cmd_demo(args) -> int:
     print("wrote " + ", ".join(summary["files"]))
     fit_args = argparse.Namespace(tracks=str(DEMO_TRACKS), scene=args.scene, out=args.out,
                                   json=False, loss="cauchy", pixels=False, frame_interval=None,
-                                  metres_per_pixel=None, ball=None)
+                                  metres_per_pixel=None, ball=None, from_bounce=0)
     return _cmd_fit(fit_args)
 
 
@@ -348,10 +351,13 @@ def _cmd_fit(args) -> int:
             raise UsageError("--pixels needs --ball NAME (the ball of the scene the track follows)")
         result, data, scale, row = fit_pixels(
             args.tracks, scene, ball=args.ball, frame_interval=args.frame_interval,
-            metres_per_pixel=args.metres_per_pixel, say=say, loss=args.loss)
+            metres_per_pixel=args.metres_per_pixel, from_bounce=args.from_bounce, say=say,
+            loss=args.loss)
         extra = {"metres_per_pixel": scale, "surface_row_px": row,
                  "frame_interval_s": args.frame_interval}
     else:
+        if args.from_bounce:
+            raise UsageError("--from-bounce only applies with --pixels")
         for flag in ("frame_interval", "metres_per_pixel", "ball"):
             if getattr(args, flag) is not None:
                 raise UsageError(f"--{flag.replace('_', '-')} only applies with --pixels")

@@ -77,9 +77,16 @@ def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
 
 
 def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
-               metres_per_pixel: float | None = None, say=None, **options):
+               metres_per_pixel: float | None = None, from_bounce: int = 0,
+               pad_to: int | None = None, say=None, **options):
     """Fit a pixel track (``a;b;`` lines): scale from gravity unless given, surface row
-    from where consecutive flights meet. Returns (result, data, metres_per_pixel, surface_row)."""
+    from where consecutive flights meet. Returns (result, data, metres_per_pixel, surface_row).
+
+    ``from_bounce = k`` fits only the data after the k-th bounce (the state just after it is
+    fitted), leaving out the fastest flights, where air drag matters most. ``pad_to`` pads
+    the samples with masked rows to a fixed length, so tracks of different lengths share
+    one compiled fit.
+    """
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     spec = scene.ball(ball)
     track = read_pixel_track(path, frame_interval=frame_interval, ball=ball)
@@ -102,8 +109,22 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
     if say and release:
         say(f"release at frame {release}: the {release} frames before it are not fitted")
     t, pos = t[release:], pos[release:]
+    if from_bounce:
+        from ._initial import initial_guess
+
+        bounces = initial_guess(t, np.nan_to_num(pos[:, 0]), pos[:, 2], float(scene.gravity)).bounces
+        if len(bounces) < from_bounce:
+            raise ValueError(f"{path}: only {len(bounces)} bounces resolved, cannot start after bounce {from_bounce}")
+        k = int(np.searchsorted(t, bounces[from_bounce - 1] + 2 * frame_interval))
+        t, pos = t[k:], pos[k:]
+        if say:
+            say(f"fitting from t = {t[0]:.3f} s, after bounce {from_bounce}")
     pos[:, 0] -= pos[0, 0] if np.isfinite(pos[0, 0]) else 0.0
     t0 = float(t[0])
+    if pad_to is not None and pad_to > len(t):
+        extra = pad_to - len(t)
+        t = np.concatenate([t, np.full(extra, t[-1])])
+        pos = np.concatenate([pos, np.full((extra, 3), np.nan)])
     fixed = {ball: {"t0": t0, "y0": spec.position[1]}}
     free = options.pop("free", ("e", "mu_t", "vx0", "vz0", "x0", "z0"))
     result = fit(scene, {ball: (t, pos)}, free=free, fixed=fixed, progress=say, **options)
