@@ -74,8 +74,10 @@ def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
     box = np.where(is_box, solid, 0)
     plane = np.where(is_box, 0, solid - scene.n_boxes)
     norm = np.linalg.norm(m, axis=1)
-    c = scene.box_centre[box]
-    h = scene.box_half[box]
+    if scene.n_boxes:
+        c, h = scene.box_centre[box], scene.box_half[box]
+    else:  # planes only
+        c = h = jnp.zeros((len(solid), 3))
     offset = (jnp.sum(m * c, axis=1) + jnp.sum(np.abs(m) * h, axis=1) + radius) / norm
     normal = jnp.asarray(m / norm[:, None])
     if scene.plane_offset.shape[0]:
