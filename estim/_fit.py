@@ -219,7 +219,8 @@ def fit(
         scene: the scene the balls move in (radii from its balls).
         data: ``ball -> (t (n,), position (n, 3))`` in seconds and metres, NaN marking a lost
             coordinate (``Tracks.arrays()`` gives this).
-        free: the parameters to fit (see ``PARAMETERS``); the rest are fixed at their
+        free: the parameters to fit (see ``PARAMETERS``; by default e, mu_t, vx0, x0, z0,
+            plus y0 and vy0 when the tracks have a y coordinate); the rest are fixed at their
             starting values: ``vz0 = 0``, ``t0 = 0`` (release at the data's t = 0),
             ``y0`` the ball's y in the scene, ``vy0 = 0``, unless ``fixed`` says otherwise.
         fixed: per ball, values to hold fixed (or to start from, for free parameters).
@@ -235,6 +236,8 @@ def fit(
         raise ValueError(f"unknown parameter(s) {bad}; a fit can estimate {PARAMETERS}")
     say = progress or (lambda msg: None)
     names = list(data)
+    if free == DEFAULT_FREE and any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names):
+        free = DEFAULT_FREE + ("y0", "vy0")  # 3-D tracks: the lateral release state too
     if not names:
         raise ValueError("no balls to fit")
     g = float(scene.gravity)
