@@ -209,7 +209,7 @@ def fit(
     fixed: dict[str, dict[str, float]] | None = None,
     loss: str = "cauchy",
     steps: int = 30,
-    restarts: int = 4,
+    restarts: int = 5,
     max_segments: int = 48,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
@@ -225,7 +225,8 @@ def fit(
             ``y0`` the ball's y in the scene, ``vy0 = 0``, unless ``fixed`` says otherwise.
         fixed: per ball, values to hold fixed (or to start from, for free parameters).
         loss: ``"cauchy"`` (default), ``"huber"`` or ``"l2"``.
-        restarts: how many perturbed starts to try for balls whose fit misses the noise floor.
+        restarts: how many more starts (e on a grid over [0.3, 0.9]) to try for balls whose
+            fit misses the noise floor.
         progress: called with a short message at each stage.
     """
     require_x64()
@@ -301,7 +302,11 @@ def fit(
     theta, history, diag = run(theta, batch)
     floors = [_at_floor(diag, i, problems[i], noises[i]) for i in range(len(names))]
     best_theta, best_diag, best_hist = theta, diag, history
+    # Multi-start for balls above the noise floor: e from a grid across its range (the
+    # basin of the right e can be narrow where bounces land near tread edges or a series
+    # goes Zeno), mu_t and vx0 from the data-driven start, slightly perturbed.
     rng = np.random.default_rng(0)
+    grid = np.linspace(0.3, 0.9, restarts) if restarts > 1 else np.array([0.6])
     for attempt in range(restarts):
         if all(floors):
             break
@@ -310,7 +315,9 @@ def fit(
         for i, ok in enumerate(floors):
             if not ok:
                 phi = np.array(_to_physical(jnp.asarray(starts[i]), free, problems[i].fixed))
-                for n, spread in (("e", 0.08), ("mu_t", 0.03), ("vx0", 0.05)):
+                if "e" in free:
+                    phi[0] = grid[attempt]
+                for n, spread in (("mu_t", 0.02), ("vx0", 0.03)):
                     if n in free:
                         k = PARAMETERS.index(n)
                         phi[k] = phi[k] + spread * rng.uniform(-1, 1)
@@ -373,8 +380,10 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
     # Gauss-Newton covariance with robust weights and the residual noise estimate.
     w = w * valid_np
     Jw = J * np.sqrt(w)[:, None]
-    dof = max(int(valid_np.sum()) - len(free), 1)
-    s2 = float(np.sum(w * r_all**2) / dof)
+    # Noise variance from the inlier residuals (unweighted: robust weights below 1 would
+    # shrink it), with the degrees of freedom they carry.
+    dof = max(int(keep.sum()) - len(free), 1)
+    s2 = float(np.sum(r_all[keep] ** 2) / dof)
     notes = []
     col = np.linalg.norm(Jw, axis=0)
     scale_cols = np.where(col > 0, col, 1.0)
@@ -396,9 +405,14 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
     corr = np.full((len(free), len(free)), np.nan)
     ids = np.flatnonzero(identifiable)
     if ids.size:
-        Ji = Jw[:, ids]
         try:
-            cov = s2 * np.linalg.inv(Ji.T @ Ji)
+            # Sandwich form of the weighted least-squares covariance: A^-1 B A^-1 with
+            # A = J^T W J, B = J^T W^2 J (Huber 1967); for inliers (W ~ 1) it is s^2 (J^T J)^-1.
+            Jr = J[:, ids] * valid_np[:, None]
+            A = Jr.T @ (w[:, None] * Jr)
+            B = Jr.T @ ((w**2)[:, None] * Jr)
+            Ainv = np.linalg.inv(A)
+            cov = s2 * Ainv @ B @ Ainv
             sd = np.sqrt(np.clip(np.diag(cov), 0, None))
             for a, k in enumerate(ids):
                 stderr[free[k]] = float(sd[a])

@@ -145,6 +145,22 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=0.7, mu_default=0.9
             bounces.append(tb)
             if abs(a.x[1]) > 1e-3:
                 mus.append(b.x[1] / a.x[1])
+    # The noise level: robust spread of the samples about their flight's line of w
+    # (second differences, used to split the flights, also see the curvature across
+    # missing frames and rests, and overestimate it).
+    tt, xx, zz = (np.asarray(a, float) for a in (t, x, z))
+    ok = np.isfinite(tt) & np.isfinite(zz)
+    res = []
+    for f in flights:
+        inside = ok & (tt >= f.start) & (tt <= f.stop) & np.isfinite(xx)
+        res.append(zz[inside] + 0.5 * g * tt[inside] ** 2 - (f.w[0] + f.w[1] * tt[inside]))
+        res.append(xx[inside] - (f.x[0] + f.x[1] * tt[inside]))
+    res = np.concatenate(res) if res else np.zeros(0)
+    if res.size > 4 * len(flights) + 4:
+        mad = 1.4826 * np.median(np.abs(res - np.median(res)))
+        from_flights = float(mad * np.sqrt(res.size / (res.size - 4 * len(flights))))
+        # Few samples in flights (a ball that soon rests): do not trust a small estimate.
+        sigma = from_flights if res.size >= 60 or not np.isfinite(sigma) else max(from_flights, sigma)
     e = float(np.clip(np.median(es), 0.05, 0.99)) if es else e_default
     mu = float(np.clip(np.median(mus), 0.5, 1.0)) if mus else mu_default
     return Initial(

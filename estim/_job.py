@@ -21,11 +21,11 @@ from ._tracks import (
 )
 
 
-def _progress(stream=sys.stderr):
+def _progress(stream=None):
     start = time.perf_counter()
 
     def say(msg: str) -> None:
-        print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=stream, flush=True)
+        print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=stream or sys.stderr, flush=True)
 
     return say
 

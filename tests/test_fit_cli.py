@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+import estim._job  # imported here, at collection, so later tests never see a closed stream
 from estim._cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,3 +102,9 @@ def test_fit_pixels_real_table(capsys):
     payload = json.loads(captured.out)
     assert payload["metres_per_pixel"] > 0
     assert 0.6 < payload["balls"]["pingpong"]["e"] < 0.95
+
+
+def test_fit_progress_follows_sys_stderr(capsys):
+    say = estim._job._progress()
+    say("hello from the progress reporter")
+    assert "hello from the progress reporter" in capsys.readouterr().err

@@ -6,10 +6,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import STAIRS_XML
 
 import estim
-
-from conftest import STAIRS_XML
 
 
 @pytest.fixture(scope="module")
