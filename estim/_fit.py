@@ -268,7 +268,7 @@ def fit(
             mask=jnp.asarray(np.concatenate([mask, np.zeros((pad, 3), bool)])),
             radius=jnp.asarray(spec.radius),
             fixed=jnp.asarray(phi),
-            scale=jnp.asarray(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3),
+            scale=jnp.asarray(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3, dtype=jnp.float64),
         ))
         starts.append(np.asarray(_to_theta(jnp.asarray(phi), free)))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
@@ -296,8 +296,8 @@ def fit(
             rv = r[valid]
             mad = 1.4826 * np.median(np.abs(rv - np.median(rv))) if rv.size else 0.0
             scales.append(max(float(pr.scale), float(mad)))
-        problems = [eqx.tree_at(lambda p: p.scale, pr, jnp.asarray(s)) for pr, s in zip(problems, scales, strict=True)]
-        batch = eqx.tree_at(lambda p: p.scale, batch, jnp.asarray(scales))
+        problems = [eqx.tree_at(lambda p: p.scale, pr, jnp.asarray(s, dtype=jnp.float64)) for pr, s in zip(problems, scales, strict=True)]
+        batch = eqx.tree_at(lambda p: p.scale, batch, jnp.asarray(scales, dtype=jnp.float64))
     say("fitting all data")
     theta, history, diag = run(theta, batch)
     floors = [_at_floor(diag, i, problems[i], noises[i]) for i in range(len(names))]
