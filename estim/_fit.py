@@ -15,8 +15,8 @@ The pipeline, per ball (all balls of a data set run together, batched with ``vma
    comes from forward-mode autodiff (``jax.jacfwd``) in the same pass as the residuals, one
    simulation per iteration; near the optimum the method converges quadratically.
 4. **Check the noise floor**: the rms residual of the inliers must match the noise level
-   read from the data (second differences within flights); if it does not, restart from
-   perturbed starting values and keep the best. The report says when the floor is not
+   read from the data (the spread about each flight's parabola); if it does not, restart
+   with e from a grid over its range and keep the best. The report says when the floor is not
    reached.
 5. **Uncertainty** from the Gauss-Newton approximation at the optimum:
    ``cov = s^2 (J^T W J)^-1`` with J the Jacobian of the residuals with respect to the
