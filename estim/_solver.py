@@ -3,7 +3,8 @@
 The motion of a ball is a sequence of *segments*, each in closed form:
 
 - ``FLIGHT``: a parabola ``p + v tau + a tau^2 / 2`` ending at a contact or at ``t_end``;
-- ``TRAIN``: a whole series of bounces on one horizontal face. After a bounce with
+- ``TRAIN``: a whole series of bounces on one face (any supporting face in general,
+  ``estim._train``; here the horizontal case). After a bounce with
   post-impact horizontal velocity u and vertical speed w, flight j lasts ``T0 e^j``
   (``T0 = 2 w / g``) and carries horizontal velocity ``u mu^j``, so bounce n happens at
 
