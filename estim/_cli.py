@@ -92,6 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--from-bounce", type=int, default=0,
                      help="with --pixels: fit only the data after this bounce (default 0: from "
                           "the release); leaves out the fastest flights, where drag matters most")
+    fit.add_argument("--also", nargs="+", default=[], metavar="PARAM",
+                     choices=("vz0", "t0", "y0", "vy0", "drag_coefficient", "spin_y"),
+                     help="more parameters to fit besides e, mu_t, vx0 and the release point: "
+                          "vz0, t0 (time offset), y0, vy0, and in a scene with air "
+                          "drag_coefficient and spin_y (spin about y, rad/s)")
     fit.set_defaults(func=_cmd_fit)
 
     bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks.")
@@ -332,10 +337,18 @@ def _cmd_demo(args) -> int:
 # --------------------------------------------------------------------------- fit
 
 
+def _also(args, base) -> dict:
+    """``free=`` for the fit when --also asks for more parameters (else the default)."""
+    if not args.also:
+        return {}
+    return {"free": tuple(base) + tuple(n for n in dict.fromkeys(args.also) if n not in base)}
+
+
 def _cmd_fit(args) -> int:
     import os
 
-    from ._job import _progress, fit_csv, fit_pixels, format_table, write_outputs
+    from ._fit import DEFAULT_FREE
+    from ._job import PIXEL_FREE, _progress, fit_csv, fit_pixels, format_table, write_outputs
 
     scene = args.scene or default_scene_path()
     if not os.path.isfile(args.tracks):
@@ -352,7 +365,7 @@ def _cmd_fit(args) -> int:
         result, data, scale, row = fit_pixels(
             args.tracks, scene, ball=args.ball, frame_interval=args.frame_interval,
             metres_per_pixel=args.metres_per_pixel, from_bounce=args.from_bounce, say=say,
-            loss=args.loss)
+            loss=args.loss, **_also(args, PIXEL_FREE))
         extra = {"metres_per_pixel": scale, "surface_row_px": row,
                  "frame_interval_s": args.frame_interval}
     else:
@@ -361,7 +374,7 @@ def _cmd_fit(args) -> int:
         for flag in ("frame_interval", "metres_per_pixel", "ball"):
             if getattr(args, flag) is not None:
                 raise UsageError(f"--{flag.replace('_', '-')} only applies with --pixels")
-        result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss)
+        result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss, **_also(args, DEFAULT_FREE))
     payload = result.to_json()
     payload.update(extra)
     if args.out:

@@ -28,6 +28,9 @@ by mu_t,
 
 from __future__ import annotations
 
+import functools
+import itertools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -56,6 +59,7 @@ class Faces(eqx.Module):
 
     row: Float[Array, "faces 14"]
     rank: Int[Array, " faces"]
+    lower: Int[Array, "faces 6"]  # faces of the same box that border this one, of lower rank (-1: none)
     lo: Float[Array, "solids 3"]
     hi: Float[Array, "solids 3"]
     radius: Float[Array, ""]
@@ -95,7 +99,32 @@ def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
     lo = jnp.concatenate([scene.box_centre - scene.box_half - radius, jnp.where(pn < 0, -ps, -jnp.inf)])
     hi = jnp.concatenate([scene.box_centre + scene.box_half + radius, jnp.where(pn > 0, ps, jnp.inf)])
     rank = np.where(is_box, np.abs(m).sum(axis=1), 1).astype(np.int32)
-    return Faces(row=row, rank=jnp.asarray(rank), lo=lo, hi=hi, radius=jnp.asarray(radius))
+    lower = _lower_faces(scene.face_solid, scene.face_direction, scene.n_boxes)
+    return Faces(row=row, rank=jnp.asarray(rank), lower=jnp.asarray(lower), lo=lo, hi=hi,
+                 radius=jnp.asarray(radius))
+
+
+@functools.lru_cache(maxsize=64)
+def _lower_faces(face_solid, face_direction, n_boxes) -> np.ndarray:
+    """For each face of a box, the faces of the same box that border it and have lower
+    rank: those whose direction keeps some of its nonzero components and zeroes the others
+    (a bevel (1, 0, 1) borders (1, 0, 0) and (0, 0, 1); a corner borders 3 bevels and 3
+    faces). Faces removed as unreachable are left out. ``(faces, 6)``, -1 for none."""
+    solid, m = np.asarray(face_solid), np.asarray(face_direction, dtype=np.float64)
+    index = {(int(b), tuple(d)): f for f, (b, d) in enumerate(zip(solid, m.tolist(), strict=True))}
+    out = np.full((len(solid), 6), -1, dtype=np.int32)
+    for f in np.flatnonzero(solid < n_boxes):
+        nz = np.flatnonzero(m[f])
+        found = []
+        for k in range(1, len(nz)):
+            for keep in itertools.combinations(nz, k):
+                d = np.zeros(3)
+                d[list(keep)] = m[f, list(keep)]
+                g = index.get((int(solid[f]), tuple(d.tolist())))
+                if g is not None:
+                    found.append(g)
+        out[f, : len(found)] = found
+    return out
 
 
 def entering_time(
@@ -144,13 +173,27 @@ def first_contact(
     ``exclude`` is a face the ball is sliding on (or -1). Faces reached at the same instant
     (to 1e-12 s) are resolved in favour of box faces over bevels over corners, so a ball
     landing exactly on a tread edge lands on the tread.
+
+    At an edge of a solid's contact region (where a face meets a face of lower rank, e.g. a
+    bevel meets the tread top) the ball enters the solid only if it enters the lower-rank
+    face too: a ball that touches the tread top there but leaves it (a rebound from the
+    edge point) or moves along it (a slide on the top) is not stopped by the bevel.
     """
     normal, offset = faces.row[:, NORMAL], faces.row[:, OFFSET]
     centre, half = faces.row[:, CENTRE], faces.row[:, HALF]
-    tau = entering_time(normal @ p - offset, normal @ v, normal @ a)
+    g2 = normal @ a
+    tau = entering_time(normal @ p - offset, normal @ v, g2)
     finite = jnp.isfinite(tau)
-    q, _ = ballistic(p, v, a, jnp.where(finite, tau, 0.0)[:, None])
+    q, w = ballistic(p, v, a, jnp.where(finite, tau, 0.0)[:, None])
     ok = finite & on_face(q, centre, half, faces.radius)
+    # Guards of the lower-rank faces bordering face f, at the contact point of face f.
+    j = jnp.maximum(faces.lower, 0)
+    nj = normal[j]
+    gj0 = jnp.sum(nj * q[:, None, :], axis=-1) - offset[j]
+    gj1 = jnp.sum(nj * w[:, None, :], axis=-1)
+    touches = (faces.lower >= 0) & (jnp.abs(gj0) <= POSITION_TOL)
+    enters = (gj1 < -SPEED_TOL) | ((jnp.abs(gj1) <= SPEED_TOL) & (g2[j] < 0))
+    ok = ok & ~jnp.any(touches & ~enters, axis=1)
     ok = ok & (jnp.arange(tau.shape[0]) != exclude)
     tau = jnp.where(ok, tau, jnp.inf)
     t_min = jnp.min(tau)
@@ -209,7 +252,9 @@ def train_reach(faces: Faces, face, p, u, height):
     apex) above the segment from p along u. Returns the distance to the first place where
     that slab meets another solid's box grown by r in every axis (a superset of the solid's
     contact region, so the bound is conservative), or where the face ends; ``-1`` when the
-    slab is blocked from the start.
+    slab is blocked from the start. Only the interior of a grown box blocks: the contact
+    region lies inside it, so a series that merely touches its boundary (a ball bouncing in
+    place against a riser, or away from it) never enters the solid.
     """
     r = faces.row[face]
     solid = r[SOLID]
@@ -225,12 +270,12 @@ def train_reach(faces: Faces, face, p, u, height):
     dd = jnp.where(dz, d, 1.0)
     t1 = (lo[:, :2] - p[:2]) / dd
     t2 = (hi[:, :2] - p[:2]) / dd
-    inside = (p[:2] >= lo[:, :2]) & (p[:2] <= hi[:, :2])
+    inside = (p[:2] > lo[:, :2] + POSITION_TOL) & (p[:2] < hi[:, :2] - POSITION_TOL)
     s_in = jnp.where(dz, jnp.minimum(t1, t2), jnp.where(inside, -inf, inf))
     s_out = jnp.where(dz, jnp.maximum(t1, t2), jnp.where(inside, inf, -inf))
     enter = jnp.maximum(jnp.max(s_in, axis=1), 0.0)
     leave = jnp.min(s_out, axis=1)
-    hit = overlap & (enter <= leave) & (jnp.arange(lo.shape[0]) != solid)
+    hit = overlap & (enter < leave - POSITION_TOL) & (jnp.arange(lo.shape[0]) != solid)
     obstacle = jnp.min(jnp.where(hit, enter, inf))
     # Where the face itself ends (box top faces; planes, with infinite half sizes, never end).
     c, h = r[CENTRE][:2], r[HALF][:2]
@@ -251,7 +296,10 @@ def geometric_sum(q, n):
     n_safe = jnp.where(jnp.isfinite(n), n, 1e300)
     general = jnp.expm1(jnp.minimum(n_safe * lq, 0.0)) / jnp.expm1(lq)
     general = jnp.where(jnp.isfinite(n), general, -1.0 / jnp.expm1(lq))
-    at_one = n_safe + 0.5 * n_safe * (n_safe - 1.0) * (q - 1.0)
+    # (At q = 1 an infinite n gives inf below; a finite stand-in keeps reverse-mode
+    # cotangents of this unused branch free of inf * 0.)
+    n_one = jnp.where(jnp.isfinite(n), n, 1.0)
+    at_one = n_one + 0.5 * n_one * (n_one - 1.0) * (q - 1.0)
     at_zero = jnp.where(n >= 1, 1.0 + q * jnp.minimum(n - 1.0, 1.0), 0.0)
     return jnp.where(one, jnp.where(jnp.isfinite(n), at_one, jnp.inf), jnp.where(zero, at_zero, general))
 

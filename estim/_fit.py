@@ -32,6 +32,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -41,17 +42,24 @@ from ._config import require_x64
 from ._initial import Initial, initial_guess
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
-from ._params import Params
+from ._ode import OdeSettings, solve_one
+from ._params import DRAG_COEFFICIENT, Params
 from ._scene import Scene
 from ._solver import plan, segments_of
+from ._tracks import check_units
 from ._trajectory import IMPACT, list_events, sample
 
 __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
 
 # Every parameter a fit can estimate, in the order of the internal vector.
-PARAMETERS = ("e", "mu_t", "vx0", "x0", "z0", "vz0", "t0", "y0", "vy0")
+PARAMETERS = ("e", "mu_t", "vx0", "x0", "z0", "vz0", "t0", "y0", "vy0", "drag_coefficient", "spin_y")
+# Fitted only in a scene with air (``Scene.air``); spin_y is the spin about the y axis (rad/s),
+# which curves a flight in the xz-plane (backspin lifts a ball moving along +x when < 0).
+AIR_PARAMETERS = ("drag_coefficient", "spin_y")
 DEFAULT_FREE = ("e", "mu_t", "vx0", "x0", "z0")
 _BOUNDED = ("e", "mu_t")  # in (0, 1) through a sigmoid
+_POSITIVE = ("drag_coefficient",)  # > 0 through exp
+MIN_SAMPLES = 8  # samples with x and z that a ball needs (as read_tracks_csv by default)
 
 
 class _Problem(eqx.Module):
@@ -61,6 +69,7 @@ class _Problem(eqx.Module):
     obs: jax.Array  # (N, 3)
     mask: jax.Array  # (N, 3) bool
     radius: jax.Array  # ()
+    mass: jax.Array  # () (kg), for the air's forces
     fixed: jax.Array  # (len(PARAMETERS),) values of the parameters that are not fitted
     scale: jax.Array  # () noise level s of the robust loss (m)
 
@@ -70,7 +79,8 @@ def _index(free):
 
 
 def _to_physical(theta, free, fixed):
-    values = [jax.nn.sigmoid(theta[i]) if n in _BOUNDED else theta[i] for i, n in enumerate(free)]
+    values = [jax.nn.sigmoid(theta[i]) if n in _BOUNDED else jnp.exp(theta[i]) if n in _POSITIVE
+              else theta[i] for i, n in enumerate(free)]
     return fixed.at[_index(free)].set(jnp.stack(values))
 
 
@@ -81,28 +91,41 @@ def _to_theta(phi, free):
         if n in _BOUNDED:
             v = jnp.clip(v, 1e-6, 1 - 1e-6)
             v = jnp.log(v) - jnp.log1p(-v)
+        elif n in _POSITIVE:
+            v = jnp.log(jnp.maximum(v, 1e-6))
         out.append(v)
     return jnp.stack(out)
 
 
+# The ODE path's settings in a fit (scenes with air): the defaults of estim.simulate, with a
+# step budget for tracks of a few seconds.
+FIT_ODE = dict(rtol=1e-8, atol=1e-9, contact_slack=1e-6, max_steps=1024)
+
+
 def _simulate_at(scene: Scene, phi, problem: _Problem, max_segments: int):
-    """Model positions at the sample times, and the events, for physical values phi."""
-    e, mu_t, vx0, x0, z0, vz0, t0, y0, vy0 = (phi[i] for i in range(len(PARAMETERS)))
-    params = Params(e, mu_t, problem.radius, jnp.stack([x0, y0, z0]), jnp.stack([vx0, vy0, vz0]))
+    """Model positions at the sample times, the events and the sample times, for physical
+    values phi: the closed form in a vacuum, the ODE path in a scene with air."""
+    e, mu_t, vx0, x0, z0, vz0, t0, y0, vy0, cd, spin_y = (phi[i] for i in range(len(PARAMETERS)))
+    params = Params(e, mu_t, problem.radius, jnp.stack([x0, y0, z0]), jnp.stack([vx0, vy0, vz0]),
+                    mass=problem.mass, drag_coefficient=cd, spin=jnp.stack([0.0, spin_y, 0.0]))
     ts = jnp.clip(problem.t - t0, 0.0, None)
     t_end = jnp.maximum(jnp.max(ts), 1e-3)
+    if scene.air is not None:
+        settings = OdeSettings(diffrax.Tsit5(), *(jnp.asarray(FIT_ODE[k]) for k in ("rtol", "atol", "contact_slack")),
+                               FIT_ODE["max_steps"])
+        pos, _, events, *_ = solve_one(scene, params, t_end, ts, settings, 64)
+        return pos, events, ts
     pl = plan(scene, params, t_end, max_segments)
     segs = segments_of(scene, params, t_end, pl.decisions, pl.segments)
     pos, _ = sample(segs, pl.decisions, e, mu_t, scene.gravity, ts)
-    return pos, (segs, pl.decisions, ts)
+    return pos, list_events(segs, pl.decisions, e, mu_t, scene.gravity, 64), ts
 
 
 def _residuals(scene, phi, problem, max_segments):
     """Masked residuals (flattened), which entries are valid, model positions, impacts."""
-    pos, (segs, decisions, ts) = _simulate_at(scene, phi, problem, max_segments)
+    pos, events, ts = _simulate_at(scene, phi, problem, max_segments)
     valid = problem.mask & (problem.t >= phi[PARAMETERS.index("t0")])[:, None]
     r = jnp.where(valid, pos - problem.obs, 0.0).reshape(-1)
-    events = list_events(segs, decisions, phi[0], phi[1], scene.gravity, 64)
     impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts))).astype(jnp.int32)
     return r, (valid.reshape(-1), pos, impacts)
 
@@ -228,6 +251,15 @@ def fit(
         restarts: how many more starts (e on a grid over [0.3, 0.9]) to try for balls whose
             fit misses the noise floor.
         progress: called with a short message at each stage.
+
+    Raises:
+        ValueError: data or fixed values that a fit cannot use, naming the ball and the
+            problem: times not finite or not strictly increasing, infinite positions (NaN
+            marks a lost detection), fewer than 8 samples, a track that does not fall with
+            the scene's gravity between bounces (not metres and seconds:
+            ``estim._tracks.check_units``), fixed values that are not finite, e or mu_t
+            outside [0, 1], a fixed release point inside a solid, a ball of radius <= 0.
+        KeyError: a ball the scene does not have.
     """
     require_x64()
     if loss not in ROBUST_LOSSES:
@@ -235,10 +267,18 @@ def fit(
     bad = [n for n in free if n not in PARAMETERS]
     if bad:
         raise ValueError(f"unknown parameter(s) {bad}; a fit can estimate {PARAMETERS}")
+    air_free = [n for n in free if n in AIR_PARAMETERS]
+    if air_free and scene.air is None:
+        raise ValueError(
+            f"fitting {air_free} needs a scene with air: add <option density=...> to the "
+            "scene (or Scene.with_air(estim.Air(density=1.204)))"
+        )
+    _check_inputs(scene, data, fixed or {})
     say = progress or (lambda msg: None)
     names = list(data)
-    if free == DEFAULT_FREE and any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names):
-        free = DEFAULT_FREE + ("y0", "vy0")  # 3-D tracks: the lateral release state too
+    if (set(DEFAULT_FREE) <= set(free) and "y0" not in free
+            and any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)):
+        free = tuple(free) + ("y0", "vy0")  # 3-D tracks: the lateral release state too
     if not names:
         raise ValueError("no balls to fit")
     g = float(scene.gravity)
@@ -252,7 +292,8 @@ def fit(
         init = initial_guess(t, pos[:, 0], pos[:, 2], g, release_time=release)
         inits.append(init)
         values = dict(e=init.e, mu_t=init.mu_t, vx0=init.vx0, x0=init.x0, z0=init.z0,
-                      vz0=0.0, t0=release, y0=spec.position[1], vy0=0.0)
+                      vz0=0.0, t0=release, y0=spec.position[1], vy0=0.0,
+                      drag_coefficient=DRAG_COEFFICIENT, spin_y=0.0)
         if "vz0" in free:
             values["vz0"] = init.vz0
         y = pos[:, 1][np.isfinite(pos[:, 1])]
@@ -267,6 +308,7 @@ def fit(
             obs=jnp.asarray(np.concatenate([np.nan_to_num(pos), np.zeros((pad, 3))])),
             mask=jnp.asarray(np.concatenate([mask, np.zeros((pad, 3), bool)])),
             radius=jnp.asarray(spec.radius),
+            mass=jnp.asarray(spec.mass),
             fixed=jnp.asarray(phi),
             scale=jnp.asarray(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3, dtype=jnp.float64),
         ))
@@ -336,6 +378,85 @@ def fit(
     return FitResult(results)
 
 
+def _check_inputs(scene, data, fixed) -> None:
+    """Reject data and fixed values that fit cannot use, naming the ball and the problem:
+    nothing is dropped, clipped, reordered or rescaled silently. NaN in a position is a lost
+    detection (masked); anything else must be finite."""
+    from ._simulate import _check_outside
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be an estim.Scene (estim.load_scene), got {type(scene).__name__}")
+    if not isinstance(data, dict):
+        raise TypeError(f"data must be a dict ball -> (t, position), got {type(data).__name__}")
+    if not data:
+        raise ValueError("no balls to fit")
+    g = float(scene.gravity)
+    for b, value in data.items():
+        spec = scene.ball(b)  # KeyError naming the scene's balls
+        if not (math.isfinite(spec.radius) and spec.radius > 0):
+            raise ValueError(f"ball {b!r}: the scene gives it radius {spec.radius!r}; a radius "
+                             "must be > 0 (metres)")
+        try:
+            t, pos = value
+        except (TypeError, ValueError):
+            raise ValueError(f"ball {b!r}: data must be a pair (t, position)") from None
+        t, pos = np.asarray(t, dtype=np.float64), np.asarray(pos, dtype=np.float64)
+        if t.ndim != 1 or pos.shape != (t.shape[0], 3):
+            raise ValueError(f"ball {b!r}: t must have shape (n,) and position (n, 3), got "
+                             f"{t.shape} and {pos.shape}")
+        bad = np.flatnonzero(~np.isfinite(t))
+        if bad.size:
+            raise ValueError(f"ball {b!r}: t[{bad[0]}] = {float(t[bad[0]])!r} is not a finite "
+                             "time (s)")
+        # Times of the rows with data must increase strictly (rows without any coordinate,
+        # such as the padding of estim._job.fit_pixels, carry no data and are masked).
+        rows = np.flatnonzero(np.any(np.isfinite(pos), axis=1))
+        bad = np.flatnonzero(np.diff(t[rows]) <= 0)
+        if bad.size:
+            i, j = int(rows[bad[0] + 1]), int(rows[bad[0]])
+            what = "repeats" if t[i] == t[j] else "goes back from"
+            raise ValueError(f"ball {b!r}: time t[{i}] = {float(t[i])!r} {what} t[{j}] = "
+                             f"{float(t[j])!r}; times must increase strictly (sort the "
+                             "samples, remove duplicates)")
+        bad = np.argwhere(np.isinf(pos))
+        if bad.size:
+            i, k = (int(v) for v in bad[0])
+            raise ValueError(f"ball {b!r}: position[{i}] {'xyz'[k]} = {float(pos[i, k])!r} is infinite "
+                             "(a lost detection is NaN)")
+        n = int(np.sum(np.all(np.isfinite(pos[:, [0, 2]]), axis=1)))
+        if n < MIN_SAMPLES:
+            raise ValueError(f"ball {b!r}: only {n} samples with x and z; a fit needs at least "
+                             f"{MIN_SAMPLES}")
+        check_units(t, pos[:, 2], g, where=f"ball {b!r}")
+    if not isinstance(fixed, dict):
+        raise TypeError(f"fixed must be a dict ball -> {{parameter: value}}, got {type(fixed).__name__}")
+    for b, values in fixed.items():
+        if b not in data:
+            raise ValueError(f"fixed names ball {b!r}, which is not in the data {list(data)}")
+        for name, v in values.items():
+            if name not in PARAMETERS:
+                raise ValueError(f"fixed[{b!r}]: unknown parameter {name!r}; the parameters "
+                                 f"are {PARAMETERS}")
+            v = float(v)
+            if not math.isfinite(v):
+                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} must be finite")
+            if name in _BOUNDED and not 0.0 <= v <= 1.0:
+                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} must lie in [0, 1]")
+            if name in _POSITIVE and not v > 0:
+                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} must be > 0")
+            if name in AIR_PARAMETERS and name != "drag_coefficient" and v != 0 and scene.air is None:
+                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r}: spin has no effect in a scene "
+                                 "without air")
+        if "x0" in values and "z0" in values:
+            spec = scene.ball(b)
+            y0 = float(values.get("y0", spec.position[1]))
+            release = (float(values["x0"]), y0, float(values["z0"]))
+            try:
+                _check_outside(scene, Params(0.5, 0.5, spec.radius, release, (0.0, 0.0, 0.0)))
+            except ValueError as err:
+                raise ValueError(f"fixed release point of ball {b!r}: {err}") from None
+
+
 def _objective(diag, i, loss, problem):
     r, _, (valid, _, _) = diag
     return float(jnp.sum(jnp.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
@@ -370,7 +491,8 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
     r, J, (_, pos, impacts) = jax.tree.map(lambda a: np.asarray(a[i]), diag)
     phi = np.asarray(_to_physical(jnp.asarray(theta), free, problem.fixed))
     # Jacobian with respect to the physical parameters: d theta / d phi per column.
-    dphi = np.array([phi[PARAMETERS.index(n)] * (1 - phi[PARAMETERS.index(n)]) if n in _BOUNDED else 1.0 for n in free])
+    dphi = np.array([phi[PARAMETERS.index(n)] * (1 - phi[PARAMETERS.index(n)]) if n in _BOUNDED
+                     else phi[PARAMETERS.index(n)] if n in _POSITIVE else 1.0 for n in free])
     at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range
     J = np.where(at_bound[None, :], 0.0, J / np.where(at_bound, 1.0, dphi)[None, :])
     w = np.asarray(robust_weight(jnp.asarray(r) / problem.scale, loss))

@@ -66,6 +66,10 @@ def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = N
     return payload
 
 
+# A drop filmed from the side starts with an unknown vertical speed.
+PIXEL_FREE = ("e", "mu_t", "vx0", "vz0", "x0", "z0")
+
+
 def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
     """Fit a tracks CSV: returns (result, data) with data ``ball -> (t, position)``."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
@@ -126,7 +130,7 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
         t = np.concatenate([t, np.full(extra, t[-1])])
         pos = np.concatenate([pos, np.full((extra, 3), np.nan)])
     fixed = {ball: {"t0": t0, "y0": spec.position[1]}}
-    free = options.pop("free", ("e", "mu_t", "vx0", "vz0", "x0", "z0"))
+    free = options.pop("free", PIXEL_FREE)
     result = fit(scene, {ball: (t, pos)}, free=free, fixed=fixed, progress=say, **options)
     result.source = os.fspath(path)
     return result, {ball: (t, pos)}, metres_per_pixel, surface_row

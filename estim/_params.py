@@ -14,6 +14,10 @@ from ._scene import Scene
 
 __all__ = ["Params"]
 
+# Drag coefficient of a smooth sphere at Reynolds numbers 1e3-2e5 (ping-pong to bocce in
+# flight); see estim._effects.
+DRAG_COEFFICIENT = 0.47
+
 
 def _concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
@@ -29,6 +33,12 @@ class Params(eqx.Module):
         radius: ball radius r > 0 (m).
         position: release position of the centre (m), shape ``(*batch, 3)``.
         velocity: release velocity (m/s), shape ``(*batch, 3)``.
+        mass: ball mass m > 0 (kg); needed only in a scene with air (``Params.for_ball``
+            takes it from the scene), else ``None``.
+        drag_coefficient: C_D >= 0 of the quadratic drag (``estim._effects``), 0.47 (a
+            smooth sphere) by default; used only in a scene with air.
+        spin: angular velocity (rad/s), shape ``(*batch, 3)``, for the Magnus force; zero by
+            default, and it must stay zero in a scene without air, where it has no effect.
 
     Impossible values (NaN, e outside [0, 1], r <= 0, ...) raise ``ValueError`` here when
     the values are concrete, and inside ``jit`` when :func:`estim.simulate` runs.
@@ -39,16 +49,23 @@ class Params(eqx.Module):
     radius: Float[Array, "*batch"]
     position: Float[Array, "*batch 3"]
     velocity: Float[Array, "*batch 3"]
+    mass: Float[Array, "*batch"] | None
+    drag_coefficient: Float[Array, "*batch"]
+    spin: Float[Array, "*batch 3"]
 
-    def __init__(self, e, mu_t, radius, position, velocity):
+    def __init__(self, e, mu_t, radius, position, velocity, *, mass=None,
+                 drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0)):
         self.e = jnp.asarray(e, dtype=jnp.float64)
         self.mu_t = jnp.asarray(mu_t, dtype=jnp.float64)
         self.radius = jnp.asarray(radius, dtype=jnp.float64)
         self.position = jnp.asarray(position, dtype=jnp.float64)
         self.velocity = jnp.asarray(velocity, dtype=jnp.float64)
+        self.mass = None if mass is None else jnp.asarray(mass, dtype=jnp.float64)
+        self.drag_coefficient = jnp.asarray(drag_coefficient, dtype=jnp.float64)
+        self.spin = jnp.asarray(spin, dtype=jnp.float64)
 
     def __check_init__(self):
-        for name in ("position", "velocity"):
+        for name in ("position", "velocity", "spin"):
             x = getattr(self, name)
             if x.ndim == 0 or x.shape[-1] != 3:
                 raise ValueError(f"Params.{name} must have a last axis of length 3 (x, y, z), got shape {x.shape}")
@@ -58,7 +75,11 @@ class Params(eqx.Module):
             ("radius", self.radius, lambda x: x > 0, "must be > 0 (metres)"),
             ("position", self.position, lambda x: np.isfinite(x), "must be finite"),
             ("velocity", self.velocity, lambda x: np.isfinite(x), "must be finite"),
+            ("drag_coefficient", self.drag_coefficient, lambda x: x >= 0, "must be >= 0"),
+            ("spin", self.spin, lambda x: np.isfinite(x), "must be finite"),
         )
+        if self.mass is not None:
+            checks += (("mass", self.mass, lambda x: x > 0, "must be > 0 (kg)"),)
         for name, x, ok, what in checks:
             if _concrete(x):
                 xv = np.asarray(x)
@@ -71,6 +92,8 @@ class Params(eqx.Module):
         return jnp.broadcast_shapes(
             self.e.shape, self.mu_t.shape, self.radius.shape,
             self.position.shape[:-1], self.velocity.shape[:-1],
+            () if self.mass is None else self.mass.shape,
+            self.drag_coefficient.shape, self.spin.shape[:-1],
         )
 
     @classmethod
@@ -83,13 +106,18 @@ class Params(eqx.Module):
         mu_t,
         velocity=(0.0, 0.0, 0.0),
         position=None,
+        drag_coefficient=None,
+        spin=(0.0, 0.0, 0.0),
     ) -> Params:
-        """Parameters of the scene's ball ``ball`` (radius from the scene); the release
-        position defaults to the ball's position in the scene file."""
+        """Parameters of the scene's ball ``ball`` (radius and mass from the scene); the
+        release position defaults to the ball's position in the scene file."""
         spec = scene.ball(ball)
         if position is None:
             position = spec.position
-        return cls(e, mu_t, spec.radius, position, velocity)
+        if drag_coefficient is None:
+            drag_coefficient = DRAG_COEFFICIENT
+        return cls(e, mu_t, spec.radius, position, velocity, mass=spec.mass,
+                   drag_coefficient=drag_coefficient, spin=spin)
 
 
 def check_runtime(params: Params, t_end) -> Params:
@@ -99,7 +127,12 @@ def check_runtime(params: Params, t_end) -> Params:
     r = eqx.error_if(params.radius, ~(params.radius > 0), "radius must be > 0")
     p = eqx.error_if(params.position, ~jnp.all(jnp.isfinite(params.position)), "position must be finite")
     v = eqx.error_if(params.velocity, ~jnp.all(jnp.isfinite(params.velocity)), "velocity must be finite")
-    return Params(e, mu, r, p, v)
+    m = params.mass
+    if m is not None:
+        m = eqx.error_if(m, ~(m > 0), "mass must be > 0")
+    cd = eqx.error_if(params.drag_coefficient, ~(params.drag_coefficient >= 0), "drag_coefficient must be >= 0")
+    w = eqx.error_if(params.spin, ~jnp.all(jnp.isfinite(params.spin)), "spin must be finite")
+    return Params(e, mu, r, p, v, mass=m, drag_coefficient=cd, spin=w)
 
 
 def check_t_end(t_end) -> None:

@@ -8,7 +8,10 @@ it, so the picture and the physics share one file:
 - every ``plane`` geom becomes a solid half-space behind an axis-aligned plane,
 - every ``sphere`` geom on a body with a free joint becomes a ball (radius, mass, and its
   body position as the default release point),
-- ``<option gravity>`` sets gravity, which must point along -z.
+- ``<option gravity>`` sets gravity, which must point along -z,
+- ``<option density viscosity wind>`` asks for air: quadratic drag and the Magnus force
+  (density), viscous drag (viscosity), moving air (wind). Force laws in ``estim._effects``.
+  A scene without them has gravity only and is solved in closed form.
 
 Geoms that MuJoCo itself never collides (``contype="0" conaffinity="0"``) are decoration and
 are skipped, as in MuJoCo. Any other geom (meshes, capsules, static spheres, ...) is an error
@@ -35,6 +38,7 @@ when the scene is built; this is exact, not an approximation.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import os
@@ -44,6 +48,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+
+from ._effects import Air
 
 __all__ = ["Ball", "Scene", "load_scene"]
 
@@ -87,6 +93,8 @@ class Scene(eqx.Module):
         face_direction: static ``(n_faces, 3)`` direction m of each face (for a plane: its
             normal).
         balls: the balls the scene defines.
+        air: the air the balls fly through (:class:`estim.Air`), or ``None`` for a vacuum:
+            then only gravity acts and :func:`estim.simulate` is exact, in closed form.
     """
 
     box_centre: Float[Array, "boxes 3"]
@@ -98,6 +106,7 @@ class Scene(eqx.Module):
     face_solid: tuple[int, ...] = eqx.field(static=True)
     face_direction: tuple[tuple[float, float, float], ...] = eqx.field(static=True)
     balls: tuple[Ball, ...] = eqx.field(static=True, default=())
+    air: Air | None = None
 
     @property
     def n_boxes(self) -> int:
@@ -115,6 +124,10 @@ class Scene(eqx.Module):
         raise KeyError(
             f"unknown ball {name!r}: this scene has {[b.name for b in self.balls]}"
         )
+
+    def with_air(self, air: Air | None) -> Scene:
+        """The same scene with another air (``None``: a vacuum, gravity only)."""
+        return dataclasses.replace(self, air=_checked_air(air))
 
     def face_label(self, face: int) -> tuple[str, str]:
         """``(solid name, face)`` of face index ``face``, e.g. ``("step2", "+z")``."""
@@ -134,6 +147,7 @@ class Scene(eqx.Module):
         *,
         gravity: float = 9.81,
         balls: tuple[Ball, ...] = (),
+        air: Air | None = None,
     ) -> Scene:
         """A scene from plain numbers.
 
@@ -143,6 +157,7 @@ class Scene(eqx.Module):
                 ``normal . x <= offset``; the normal must be a coordinate axis.
             gravity: magnitude g > 0 (m/s^2); gravity points along -z.
             balls: the balls the scene defines.
+            air: the air (drag, wind, Magnus), or ``None`` for gravity only.
         """
         planes = planes or {}
         if not boxes and not planes:
@@ -171,7 +186,26 @@ class Scene(eqx.Module):
             face_solid=face_solid,
             face_direction=face_direction,
             balls=tuple(balls),
+            air=_checked_air(air),
         )
+
+
+def _checked_air(air: Air | None) -> Air | None:
+    if air is None:
+        return None
+    if not isinstance(air, Air):
+        raise TypeError(f"air must be an estim.Air or None, got {type(air).__name__}")
+    rho, eta, wind = float(air.density), float(air.viscosity), np.asarray(air.wind)
+    if not (math.isfinite(rho) and rho >= 0 and math.isfinite(eta) and eta >= 0):
+        raise ValueError(f"air density {rho} and viscosity {eta} must be finite and >= 0")
+    if wind.shape != (3,) or not np.all(np.isfinite(wind)):
+        raise ValueError(f"wind must be a finite 3-vector (m/s), got {wind.tolist()}")
+    if rho == 0 and eta == 0:
+        raise ValueError(
+            f"wind {wind.tolist()} without air density or viscosity exerts no force; "
+            "set density (quadratic drag) and/or viscosity (linear drag), or remove it"
+        )
+    return air
 
 
 def _faces(centre, half, normal, offset):
@@ -240,17 +274,16 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
             f"{source}: gravity {model.opt.gravity.tolist()} must point along -z "
             "(estim's contact model assumes horizontal treads under vertical gravity)"
         )
-    air = {
-        "density": float(model.opt.density),
-        "viscosity": float(model.opt.viscosity),
-        "wind": model.opt.wind.tolist(),
-    }
-    if air["density"] != 0 or air["viscosity"] != 0 or any(air["wind"]):
-        raise ValueError(
-            f"{source}: <option density/viscosity/wind> ({air}) asks for air drag, which "
-            "this version of estim does not simulate; remove them for the exact "
-            "gravity-only model"
-        )
+    density, viscosity = float(model.opt.density), float(model.opt.viscosity)
+    wind = [float(w) for w in model.opt.wind]
+    air = None
+    if density != 0 or viscosity != 0 or any(wind):
+        if density == 0 and viscosity == 0:
+            raise ValueError(
+                f"{source}: <option wind={wind}> without density or viscosity exerts no "
+                "force; set density (quadratic drag) and/or viscosity (linear drag)"
+            )
+        air = Air(density, viscosity, wind)
     free_bodies = {
         int(model.jnt_bodyid[j])
         for j in range(model.njnt)
@@ -300,4 +333,4 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
             )
     if not boxes and not planes:
         raise ValueError(f"{source}: the scene has no contact surfaces (box or plane geoms)")
-    return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls))
+    return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls), air=air)

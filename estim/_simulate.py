@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from . import _ode
 from ._config import require_x64
+from ._ode import OdeSettings
 from ._params import Params, check_runtime, check_t_end
 from ._scene import Scene
 from ._solver import plan, segments_of
-from ._trajectory import State, Trajectory, list_events, sample
+from ._trajectory import ClosedFormSolution, State, Trajectory, list_events, sample
 
 __all__ = ["simulate"]
 
@@ -23,25 +26,47 @@ def simulate(
     t_end: float | ArrayLike,
     *,
     ts: Float[ArrayLike, " times"] | None = None,
+    solver: diffrax.AbstractSolver | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-9,
+    max_steps: int = 2048,
+    contact_slack: float = 1e-6,
     max_segments: int = 48,
     max_events: int = 64,
     throw: bool = True,
 ) -> Trajectory:
-    """Simulate balls bouncing in a scene over ``[0, t_end]``, exactly.
+    """Simulate balls bouncing in a scene over ``[0, t_end]``.
 
-    With only gravity acting, every flight is a parabola and every contact time the root of
-    a quadratic, so the result is exact to rounding and no contact can be missed; bounce
-    series (including Zeno series with infinitely many bounces) are summed in closed form
-    (see ``estim._solver``). The result is differentiable (``jax.grad``, ``jax.jacfwd``)
-    with respect to every field of ``params``, ``t_end``, the sample times and the scene
-    geometry; derivatives of event times are the event-time sensitivities of the hybrid
-    system.
+    The scene decides the physics, and so the path:
+
+    - *gravity only* (no ``scene.air``): every flight is a parabola and every contact time
+      the root of a quadratic, so the result is exact to rounding and no contact can be
+      missed; bounce series (including Zeno series with infinitely many bounces) are summed
+      in closed form (``estim._solver``). No ODE solver runs.
+    - *with air* (drag, wind, Magnus; ``estim._effects``): flights are integrated with a
+      diffrax solver, contacts located by root finding under a step bound that skips none
+      (``estim._ode``).
+
+    Either way the result is differentiable (``jax.grad``, ``jax.jacfwd``) with respect to
+    every field of ``params``, ``t_end``, the sample times and the scene geometry;
+    derivatives of event times are the event-time sensitivities of the hybrid system.
 
     Args:
         scene: the scene (:func:`estim.load_scene`).
         params: per-ball parameters; all balls of a batch are simulated together (vmap).
         t_end: final time (s), > 0.
         ts: sample times in ``[0, t_end]``; default ``[0, t_end]``.
+        solver: a diffrax Runge-Kutta solver for the ODE path (default ``diffrax.Tsit5()``
+            when the scene has air). Passing one for a gravity-only scene forces the ODE
+            path (to compare it with the closed form).
+        rtol: relative tolerance of the ODE path's step-size control (error per step
+            scaled by ``atol + rtol |y|``, y = (position, velocity)).
+        atol: absolute tolerance of the ODE path's step-size control.
+        max_steps: static bound on the ODE path's steps per ball (accepted and rejected).
+        contact_slack: on the ODE path, how far (m) the integrated path may stray within a
+            step from the parabola its contacts are predicted on: no contact deeper than
+            this is ever skipped (``estim._ode``). The tolerances and the slack are traced:
+            changing them does not recompile.
         max_segments: static bound on the closed-form segments per ball (a segment is a
             flight, a whole bounce series on one face, or a slide). Bounded compute: a ball
             that would need more is reported (``throw``).
@@ -75,13 +100,36 @@ def simulate(
         if not np.all(np.isfinite(tv)) or np.any(tv < 0) or np.any(tv > float(t_end)):
             raise ValueError(f"ts must be finite and lie in [0, t_end={float(t_end)}]")
     _check_outside(scene, params)
+    _check_effects(scene, params)
+    if solver is not None and not (
+        isinstance(solver, diffrax.AbstractRungeKutta)
+        and getattr(solver.tableau, "b_error", None) is not None
+        and not getattr(solver.tableau, "implicit", False)
+    ):
+        raise TypeError(
+            "solver must be an explicit diffrax Runge-Kutta solver with an error estimate "
+            f"(diffrax.Tsit5(), Dopri5(), Dopri8(), Bosh3()), got {solver!r}"
+        )
+    if not (rtol > 0 and atol > 0 and contact_slack > 0):
+        raise ValueError(
+            f"rtol, atol and contact_slack must be > 0, got rtol={rtol!r}, atol={atol!r}, "
+            f"contact_slack={contact_slack!r}"
+        )
     traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((scene, params, t_end, ts)))
     # Called with concrete values, the inputs were checked above and completion is checked
     # below, in Python: the compiled program then has no host callbacks and can live in
     # JAX's persistent compilation cache. Inside a user's jit/grad the checks run in-graph.
-    traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced)
+    if scene.air is not None or solver is not None:
+        rk = solver or diffrax.Tsit5()
+        settings = OdeSettings(rk, jnp.asarray(rtol, dtype=jnp.float64), jnp.asarray(atol, dtype=jnp.float64),
+                               jnp.asarray(contact_slack, dtype=jnp.float64), int(max_steps))
+        traj = _simulate_ode(scene, params, t_end, ts, settings, max_events, throw and traced)
+        message = _INCOMPLETE_ODE
+    else:
+        traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced)
+        message = _INCOMPLETE
     if throw and not traced and not bool(np.all(np.asarray(traj.complete))):
-        raise RuntimeError(_INCOMPLETE)
+        raise RuntimeError(message)
     return traj
 
 
@@ -92,19 +140,73 @@ _INCOMPLETE = (
 )
 
 
+_INCOMPLETE_ODE = (
+    "a ball needed more ODE steps than max_steps; increase max_steps or loosen rtol/atol, "
+    "or pass throw=False and inspect Trajectory.complete"
+)
+
+
+def _flat_params(params: Params) -> Params:
+    batch = params.batch_shape
+
+    def flatten(x, event_shape):
+        return jnp.broadcast_to(x, batch + event_shape).reshape((-1,) + event_shape)
+
+    mass = None if params.mass is None else flatten(params.mass, ())
+    return Params(
+        flatten(params.e, ()), flatten(params.mu_t, ()), flatten(params.radius, ()),
+        flatten(params.position, (3,)), flatten(params.velocity, (3,)), mass=mass,
+        drag_coefficient=flatten(params.drag_coefficient, ()), spin=flatten(params.spin, (3,)),
+    )
+
+
+@eqx.filter_jit
+def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks):
+    _ode.TRACE_COUNT += 1
+    batch = params.batch_shape
+    if checks:
+        params = check_runtime(params, t_end)
+    flat = _flat_params(params)
+    out = jax.vmap(lambda prm: _ode.solve_one(scene, prm, t_end, ts, settings, max_events))(flat)
+    pos, vel, events, final, nodes, steps, normals, complete = out
+    if checks:
+        pos = eqx.error_if(pos, ~jnp.all(complete), _INCOMPLETE_ODE)
+
+    def unflat(x):
+        return x.reshape(batch + x.shape[1:])
+
+    solution = _ode.OdeSolution(
+        nodes=jax.tree.map(unflat, nodes), steps=jax.tree.map(unflat, steps),
+        normals=unflat(normals), e=unflat(flat.e), mu_t=unflat(flat.mu_t), gravity=scene.gravity,
+    )
+    return Trajectory(
+        ts=ts, position=unflat(pos), velocity=unflat(vel), events=jax.tree.map(unflat, events),
+        final=jax.tree.map(unflat, final), complete=unflat(complete), solution=solution,
+    )
+
+
+def _check_effects(scene: Scene, params: Params) -> None:
+    """What the air needs (a mass), and what only the air gives meaning to (spin)."""
+    if scene.air is not None and params.mass is None:
+        raise ValueError(
+            "this scene has air (drag), which needs each ball's mass: build the parameters "
+            "with Params.for_ball(scene, ...) or pass Params(..., mass=...)"
+        )
+    if scene.air is None and not isinstance(params.spin, jax.core.Tracer):
+        if np.any(np.asarray(params.spin) != 0):
+            raise ValueError(
+                "Params.spin is set but the scene has no air, so there is no Magnus force: "
+                "add <option density=...> to the scene (or Scene.with_air) or drop the spin"
+            )
+
+
 @eqx.filter_jit
 def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     batch = params.batch_shape
     if checks:
         params = check_runtime(params, t_end)
 
-    def flatten(x, event_shape):
-        return jnp.broadcast_to(x, batch + event_shape).reshape((-1,) + event_shape)
-
-    flat = Params(
-        flatten(params.e, ()), flatten(params.mu_t, ()), flatten(params.radius, ()),
-        flatten(params.position, (3,)), flatten(params.velocity, (3,)),
-    )
+    flat = _flat_params(params)
 
     def one(prm):
         pl = plan(scene, prm, t_end, max_segments)
@@ -122,18 +224,21 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     def unflat(x):
         return x.reshape(batch + x.shape[1:])
 
+    solution = ClosedFormSolution(
+        segments=jax.tree.map(unflat, segments),
+        structure=jax.tree.map(unflat, decisions),
+        e=unflat(flat.e),
+        mu_t=unflat(flat.mu_t),
+        gravity=scene.gravity,
+    )
     return Trajectory(
         ts=ts,
         position=unflat(pos),
         velocity=unflat(vel),
         events=jax.tree.map(unflat, events),
         final=jax.tree.map(unflat, final),
-        segments=jax.tree.map(unflat, segments),
-        structure=jax.tree.map(unflat, decisions),
-        e=unflat(flat.e),
-        mu_t=unflat(flat.mu_t),
-        gravity=scene.gravity,
         complete=unflat(complete),
+        solution=solution,
     )
 
 

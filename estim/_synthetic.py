@@ -9,11 +9,14 @@ comes from one ``numpy.random.Generator(seed)``, so a seed reproduces the data e
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from ._tracks import Tracks
+
+if TYPE_CHECKING:
+    from ._scene import Scene
 
 __all__ = ["SyntheticDetails", "synthesize_tracks", "frame_times"]
 
@@ -42,7 +45,7 @@ def frame_times(t_end: float, frame_rate: float) -> np.ndarray:
 
 
 def synthesize_tracks(
-    scene,
+    scene: Scene,
     truth: dict[str, dict],
     *,
     t_end: float = 2.3,
@@ -55,7 +58,7 @@ def synthesize_tracks(
     with_y: bool = False,
     seed: int = 0,
     return_details: bool = False,
-):
+) -> Tracks | tuple[Tracks, SyntheticDetails]:
     """Simulated, degraded tracks of the scene's balls with known parameters.
 
     Args:
@@ -64,7 +67,8 @@ def synthesize_tracks(
             ``"vz0"``; the release point defaults to the ball's position in the scene (for
             the stairs scene that is the seed release x0 = -0.20, z0 = 1.40 + r + 0.25),
             ``vz0`` to 0; y0 is always the scene's y of the ball, vy0 = 0.
-        t_end, frame_rate: frames at ``k / frame_rate`` in ``[0, t_end]``.
+        t_end: duration (s); frames at ``k / frame_rate`` in ``[0, t_end]``.
+        frame_rate: frames per second.
         noise: standard deviation (m) of the Gaussian noise on every coordinate.
         drop_fraction: fraction of frames removed per ball (absent rows).
         n_outliers: samples per ball replaced by gross outliers: the exact position moved

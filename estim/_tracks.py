@@ -8,7 +8,10 @@ Two input formats:
   ``nan`` marks a lost detection of that coordinate (kept as NaN and masked when fitting).
   Every problem raises :class:`TracksError` naming the file, the line and the problem;
   nothing is dropped, reordered or rescaled silently. Values that cannot be metres or
-  seconds (a position beyond 100 m, a time beyond 10^4 s) are reported as a unit problem.
+  seconds (a position beyond 100 m, a time beyond 10^4 s) are reported as a unit problem,
+  and so, when the scene is given, is a ball that falls between bounces with an
+  acceleration far from the scene's gravity (:func:`check_units`: millimetres, centimetres,
+  pixels, milliseconds or frame numbers read as metres and seconds).
 
 - **Pixel tracks** (:func:`read_pixel_track`): the ``a;b;`` files of a video colour tracker
   (one line per frame, ball-centre pixel coordinates, ``a`` horizontal, ``b`` vertical with
@@ -25,9 +28,12 @@ import csv
 import math
 import os
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ._scene import Scene
 
 __all__ = [
     "TracksError",
@@ -44,6 +50,7 @@ __all__ = [
     "estimate_pixel_scale",
     "estimate_surface_row",
     "restitution_from_flight_times",
+    "check_units",
 ]
 
 REQUIRED_COLUMNS = ("t", "ball", "x", "z")
@@ -169,13 +176,15 @@ def _parse_number(text: str, column: str, path, line: int, *, allow_missing: boo
     return v
 
 
-def read_tracks_csv(path, *, scene=None, min_samples: int = 8) -> Tracks:
+def read_tracks_csv(path: str | os.PathLike, *, scene: Scene | None = None,
+                    min_samples: int = 8) -> Tracks:
     """Read tracked positions from a CSV file (see the module docstring).
 
     Args:
         path: the CSV file: header ``t,ball,x,z`` plus optional ``y``, any column order;
             metres and seconds.
-        scene: if given, every ball must be one of the scene's balls.
+        scene: if given, every ball must be one of the scene's balls, and its vertical
+            acceleration in flight must match the scene's gravity (:func:`check_units`).
         min_samples: each ball needs at least this many valid samples (rows with every
             observed coordinate present).
 
@@ -280,6 +289,10 @@ def read_tracks_csv(path, *, scene=None, min_samples: int = 8) -> Tracks:
                 f"{n} valid samples ({cols} present); at least min_samples = {min_samples} "
                 "are needed"
             )
+    if scene is not None:
+        for b in tracks.balls:
+            check_units(tracks.t[b], tracks.position[b][:, 2], float(scene.gravity),
+                        where=f"{_where(path, first_line[b])}: ball {b!r} (first row on this line)")
     return tracks
 
 
@@ -598,6 +611,65 @@ def fit_flights(t, b, *, min_points: int = 8, cut: float = 5.0,
     return bounces, flights
 
 
+# Ratios (acceleration measured in the file's units / gravity) of common unit mistakes.
+_UNIT_MISTAKES = (
+    (1e3, "positions in millimetres"),
+    (1e2, "positions in centimetres"),
+    (39.37, "positions in inches"),
+    (3.281, "positions in feet"),
+    (1e-6, "times in milliseconds"),
+    (1e-3, "positions in millimetres and times in milliseconds"),
+    (1.0 / 60.0**2, "times in frame numbers at 60 fps"),
+    (1.0 / 30.0**2, "times in frame numbers at 30 fps"),
+    (1.0 / 120.0**2, "times in frame numbers at 120 fps"),
+    (1.0 / 240.0**2, "times in frame numbers at 240 fps"),
+)
+# A track in seconds and metres falls with an apparent acceleration within this factor of g
+# (air drag and noise move it by tens of percent at most); every mistake above is outside.
+UNIT_TOLERANCE = 3.0
+
+
+def check_units(t, z, g: float, *, where: str = "track") -> float | None:
+    """Check that a height track ``z(t)`` falls with gravity ``g`` between its bounces.
+
+    Every flight between two bounces is fitted with a robust parabola
+    (:func:`fit_flights` on ``-z``; samples with NaN are left out). If the median of their
+    accelerations (flights whose curvature is known to 5% or better) is more than
+    ``UNIT_TOLERANCE`` times larger or smaller than ``g``, the positions are not in metres
+    or the times not in seconds: raises :class:`TracksError` naming the likely mistake (see
+    ``_UNIT_MISTAKES``). Tracks without a resolved bounce pass (nothing to measure).
+
+    Returns the measured acceleration (None when there was nothing to measure).
+    """
+    t = np.asarray(t, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    ok = np.isfinite(t) & np.isfinite(z)
+    t, z = t[ok], z[ok]
+    if t.size < 16:
+        return None
+    bounces, flights = fit_flights(t, -z)
+    # Flights that end at a bounce (not the open end of the track, where the ball may rest)
+    # and whose curvature is known to 5%: a segment with an unresolved bounce inside is a
+    # poor parabola (10-20% errors, too flat) and is left out.
+    acc = [2.0 * f.curvature for f in flights
+           if f.stop in bounces and f.curvature > 0 and f.curvature_stderr < 0.05 * f.curvature]
+    if not acc:
+        return None
+    a = float(np.median(acc))
+    ratio = a / g
+    if 1.0 / UNIT_TOLERANCE <= ratio <= UNIT_TOLERANCE:
+        return a
+    near = min(_UNIT_MISTAKES, key=lambda m: abs(math.log(ratio / m[0])))
+    guess = (f"{near[1]} (which gives {near[0]:.3g})" if abs(math.log(ratio / near[0])) < math.log(1.5)
+             else "positions in pixels or other units, or times not in seconds")
+    raise TracksError(
+        f"{where}: falls with an acceleration of {a:.4g} (file units) between bounces, "
+        f"{ratio:.3g} times the scene's gravity {g:.4g} m/s^2: the units are not metres and "
+        f"seconds; likely {guess}. Convert the file to metres and seconds (estim never "
+        "rescales)"
+    )
+
+
 class PixelScale(NamedTuple):
     """What :func:`estimate_pixel_scale` returns (also unpacks as a 3-tuple)."""
 
@@ -623,6 +695,8 @@ def estimate_pixel_scale(track: PixelTrack, frame_interval: float | None = None,
     ``drag=True`` fits a quadratic drag term per flight as well (``b'' = 2c - k b'|b'|``),
     which removes most of the bias of the release and truncated flights.
     ``complete_only=True`` uses only flights observed from bounce to bounce (if any).
+    Flights whose curvature has a relative error above 25% are left out (``flights`` lists
+    the ones used); if none is left, raises ``ValueError``.
     """
     dt = track.frame_interval if frame_interval is None else float(frame_interval)
     t = track.frame * dt
@@ -638,6 +712,14 @@ def estimate_pixel_scale(track: PixelTrack, frame_interval: float | None = None,
         c, dc = f.curvature, f.curvature_stderr
         s = g / (2.0 * c)
         per.append((f.start, f.stop, f.n, s, s * dc / c))
+    # A flight whose curvature is not resolved (relative error above 25%: a few samples of a
+    # ball that is caught or comes to rest) says nothing about the scale, and weighted by its
+    # number of points it would pull the mean anywhere (3x too large on a real racket drop).
+    resolved = [p for p in per if p[4] <= 0.25 * p[3]]
+    if not resolved:
+        raise ValueError(f"{track.source}: no flight with a resolved curvature (every fit has "
+                         "a relative error above 25%): the scale cannot be measured")
+    per = resolved
     w = np.array([p[2] for p in per], dtype=np.float64)
     s_k = np.array([p[3] for p in per])
     e_k = np.array([p[4] for p in per])
@@ -740,7 +822,8 @@ class FlightTimeRestitution(NamedTuple):
     measured: np.ndarray
 
 
-def restitution_from_flight_times(track, *, ball: str | None = None) -> FlightTimeRestitution:
+def restitution_from_flight_times(track: PixelTrack | Tracks, *,
+                                  ball: str | None = None) -> FlightTimeRestitution:
     """Restitution from ratios of successive flight durations, ``T_{k+1} / T_k = e``.
 
     Scale-free: neither the pixel scale nor the frame interval matters (times only enter

@@ -51,34 +51,32 @@ class Events(eqx.Module):
     truncated: Bool[Array, "*batch"]
 
 
-class Trajectory(eqx.Module):
-    """What :func:`estim.simulate` returns.
+class AbstractSolution(eqx.Module):
+    """The whole solution of a simulation, densely: ``evaluate`` samples it anywhere."""
+
+    gravity: eqx.AbstractVar[Float[Array, ""]]
+
+    def evaluate(self, t: Float[Array, "*times"]) -> tuple[Array, Array]:
+        """Position and velocity at times ``t`` (any shape), for every ball."""
+        raise NotImplementedError
+
+
+class ClosedFormSolution(AbstractSolution):
+    """The exact piecewise closed-form solution (gravity only, ``estim._solver``).
 
     Attributes:
-        ts: the requested sample times, shape ``(times,)``.
-        position, velocity: the state at ``ts``, shape ``(*batch, times, 3)``.
-        events: every contact event (see :class:`Events`).
-        final: the state at ``t_end``.
-        segments: the exact piecewise closed-form solution; ``evaluate`` samples it.
-        structure: the discrete structure (kinds, faces, bounce counts) of the segments.
+        segments: the segments (flights, bounce series, slides) per ball.
+        structure: their discrete structure (kinds, faces, bounce counts).
         e, mu_t, gravity: what the closed forms of the segments need.
-        complete: whether ``t_end`` was reached within ``max_segments``.
     """
 
-    ts: Float[Array, " times"]
-    position: Float[Array, "*batch times 3"]
-    velocity: Float[Array, "*batch times 3"]
-    events: Events
-    final: State
     segments: Segment
     structure: Decision
     e: Float[Array, "*batch"]
     mu_t: Float[Array, "*batch"]
     gravity: Float[Array, ""]
-    complete: Bool[Array, "*batch"]
 
-    def evaluate(self, t: Float[Array, "*times"]) -> tuple[Array, Array]:
-        """Exact position and velocity at times ``t`` (any shape), for every ball."""
+    def evaluate(self, t):
         batch = self.e.shape
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), self.segments)
         flat_d = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), self.structure)
@@ -86,6 +84,37 @@ class Trajectory(eqx.Module):
         fn = jax.vmap(lambda s, d, e_, m_: sample(s, d, e_, m_, self.gravity, t))
         p, v = fn(flat, flat_d, e, mu_t)
         return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
+
+
+class Trajectory(eqx.Module):
+    """What :func:`estim.simulate` returns, on either path (closed form or ODE).
+
+    Attributes:
+        ts: the requested sample times, shape ``(times,)``.
+        position, velocity: the state at ``ts``, shape ``(*batch, times, 3)``.
+        events: every contact event (see :class:`Events`).
+        final: the state at ``t_end``.
+        complete: whether ``t_end`` was reached within the step or segment budget.
+        solution: the dense solution; ``evaluate`` samples it at any time.
+    """
+
+    ts: Float[Array, " times"]
+    position: Float[Array, "*batch times 3"]
+    velocity: Float[Array, "*batch times 3"]
+    events: Events
+    final: State
+    complete: Bool[Array, "*batch"]
+    solution: AbstractSolution
+
+    @property
+    def gravity(self) -> Float[Array, ""]:
+        """The magnitude g of the scene's gravity (m/s^2)."""
+        return self.solution.gravity
+
+    def evaluate(self, t: Float[Array, "*times"]) -> tuple[Array, Array]:
+        """Position and velocity at times ``t`` (any shape), for every ball: exact on the
+        closed-form path, the solver's accuracy on the ODE path."""
+        return self.solution.evaluate(t)
 
 
 def sample(seg: Segment, d: Decision, e, mu_t, g, t):

@@ -1,4 +1,4 @@
-"""Fit the 15 real ping-pong table drops (the table in docs/fitting.md).
+"""Fit the 15 real ping-pong table drops (the table in docs/pages/fitting.md).
 
 Run from the repository root: ``python docs/scripts/realdata_table_fits.py``. Reads the data
 from ``../shared/realdata`` (never copied into the repository) and prints one JSON line per

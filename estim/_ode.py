@@ -1,0 +1,518 @@
+"""The event-driven ODE solver, for scenes where the air acts (``estim._effects``).
+
+With drag or Magnus forces a flight has no closed form; it is integrated with a diffrax
+Runge-Kutta solver (``Tsit5`` by default) under an error-controlled step size. Contacts are
+found without ever stepping over one:
+
+1. *Prediction.* At the start of a step, the ball's path is approximated by the parabola of
+   its current acceleration a0, ``q(tau) = p + v tau + a0 tau^2 / 2``, and the exact
+   closed-form contact search of the gravity-only solver (``estim._contact.first_contact``,
+   ``slide_exit_time``) gives the first face it enters, and when.
+2. *A step bound.* A step is accepted only if the integrated end point lies within
+   ``SLACK`` (1 micrometre) of that parabola. Since the distance between the true path
+   and the parabola grows like tau^3 along a step, the path stays within ``SLACK`` of the
+   parabola over the whole step, so the only contacts the prediction can miss are grazes
+   that dip less than ``SLACK`` into a face. No contact deeper than that is skipped,
+   whatever the tolerances, and no ball tunnels through a solid.
+3. *Root finding.* When a contact (or a slide's exit over an edge) is predicted within the
+   step, the step is shortened to the event: a Newton iteration solves
+   ``G(tau) = n . q_RK(tau) - H = 0`` where ``q_RK(tau)`` is the solver's own step of length
+   tau from the step start and (n, H) the face plane (or the edge bound). The reset of
+   ``estim._contact`` then applies.
+
+Zeno series carry over: after a bounce on a face that supports the ball, if the rest of the
+bounce series (gravity only) lasts less than ``sqrt(2 SLACK / |a_air|)`` (so neglecting the
+air over it moves the ball by less than ``SLACK``), lands on the same face and meets no
+other solid, it is summed in closed form (``estim._train``) and the ball rests or slides
+on the face (with the air acting along it); it flies again when it slides off an edge. In
+a vacuum (the ODE path forced on a gravity-only scene) every such series is summed, as in
+the closed-form solver. Events and compute stay bounded by ``max_steps``.
+
+Gradients: as in ``estim._solver``, a ``plan`` pass (``lax.while_loop``, no gradients)
+finds the discrete structure and the accepted step sizes; a ``replay`` pass (``lax.scan``)
+recomputes every step differentiably with the same step sizes (discretise-then-
+differentiate: exact derivatives of the computed solution), each event time by one Newton
+step on the guard, whose derivative is the implicit-function event-time sensitivity
+``d tau = -(dG/dtheta) / (dG/dtau)``.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ._contact import (
+    CENTRE,
+    DIRECTION,
+    HALF,
+    NORMAL,
+    OFFSET,
+    REST_SPEED,
+    Faces,
+    face_normal,
+    faces_for,
+    first_contact,
+    on_face,
+    slide_exit_time,
+    train_reach,
+)
+from ._effects import acceleration
+from ._solver import contact_velocity
+from ._train import series, series_end, state_at
+from ._trajectory import IMPACT, REST, AbstractSolution, Events, State
+
+# Step kinds.
+PLAIN, LAST, CONTACT, EXIT, ZENO, UNUSED = 0, 1, 2, 3, 4, 5
+# Motion modes.
+FLY, SLIDE = 0, 1
+# The default largest distance (m) the integrated path may stray from a step's contact
+# parabola (``simulate(..., contact_slack=...)``).
+SLACK = 1e-6
+NEWTON_ITERATIONS = 6
+
+# Incremented each time the ODE program is traced: tests use it to check that a scene
+# without air never reaches the ODE solver.
+TRACE_COUNT = 0
+
+
+class Step(eqx.Module):
+    """One accepted step, as ``plan`` found it (no gradients)."""
+
+    kind: Int[Array, ""]
+    mode: Int[Array, ""]
+    support: Int[Array, ""]  # face slid on (SLIDE) or just slid off (FLY), else -1
+    face: Int[Array, ""]  # face hit (CONTACT), left (EXIT) or bounced on (ZENO), else -1
+    bound: Int[Array, ""]  # EXIT: which edge bound, 2 * axis + (0 low, 1 high)
+    h: Float[Array, ""]  # step length (a Newton start for CONTACT and EXIT)
+
+
+class Node(eqx.Module):
+    """One step in values: start and end state (end velocity before and after a reset) and
+    the accelerations at both ends, for quintic Hermite dense output."""
+
+    t0: Float[Array, ""]
+    p0: Float[Array, "3"]
+    v0: Float[Array, "3"]
+    a0: Float[Array, "3"]
+    t1: Float[Array, ""]
+    p1: Float[Array, "3"]
+    v1: Float[Array, "3"]
+    a1: Float[Array, "3"]
+    v1_post: Float[Array, "3"]
+
+
+class OdeSettings(eqx.Module):
+    """Solver, tolerances and step budget of the ODE path. The tolerances are traced
+    values: changing them does not recompile."""
+
+    solver: diffrax.AbstractSolver = eqx.field(static=True)
+    rtol: Float[Array, ""]
+    atol: Float[Array, ""]
+    slack: Float[Array, ""]  # see SLACK
+    max_steps: int = eqx.field(static=True)
+
+
+def _vector_field(air, gravity, params):
+    """``f(y, args)`` for y = (position, velocity); args = (support normal, sliding): a
+    sliding ball feels only the part of the acceleration along its face."""
+
+    def f(y, args):
+        n_sup, sliding = args
+        v = y[3:]
+        a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v)
+        a = jnp.where(sliding, a - jnp.dot(a, n_sup) * n_sup, a)
+        return jnp.concatenate([v, a])
+
+    return f
+
+
+def _rk_step(settings, f, t, h, y, args):
+    """One explicit Runge-Kutta step of length h with the solver's Butcher tableau (diffrax's
+    coefficients, unrolled: the vector field is autonomous and tiny, and an unrolled step
+    compiles in a fraction of the time of the general-purpose ``solver.step``). Returns the
+    new state and the embedded error estimate."""
+    tab = settings.solver.tableau
+    ks = [f(y, args)]
+    for a_row in tab.a_lower:
+        incr = sum(float(a) * k for a, k in zip(a_row, ks, strict=False) if a != 0)
+        ks.append(f(y + h * incr, args))
+    y1 = y + h * sum(float(b) * k for b, k in zip(tab.b_sol, ks, strict=True) if b != 0)
+    err = h * sum(float(b) * k for b, k in zip(tab.b_error, ks, strict=True) if b != 0)
+    return y1, err
+
+
+def _edge_bounds(row):
+    """The edge bounds of a box face as guards ``sigma_i (q_i - c_i) + beta_i >= 0``, two
+    per axis (index ``2 * axis + side``), as in ``estim._contact.slide_exit_time``: along
+    an axis where the face direction m is 0, ``-h <= q_i - c_i <= h``; where m_i != 0,
+    ``m_i (q_i - c_i) >= h_i`` (the second slot unused, beta = inf)."""
+    m, h = row[DIRECTION], row[HALF]
+    finite = jnp.isfinite(h)
+    sigma = jnp.stack([jnp.where(m < 0, -1.0, 1.0), -jnp.ones(3)], axis=1)
+    beta = jnp.stack([jnp.where(m == 0, h, -h), jnp.where(m == 0, h, jnp.inf)], axis=1)
+    beta = jnp.where(finite[:, None], beta, jnp.inf)
+    return sigma.reshape(-1), beta.reshape(-1)
+
+
+def _guard(faces: Faces, kind, face, bound):
+    """Plane (n, H) of an event guard ``n . q - H``, which decreases through 0 at the event:
+    the face plane for a CONTACT, edge bound ``bound`` of the face for an EXIT."""
+    row = faces.row[jnp.maximum(face, 0)]
+    sigma, beta = _edge_bounds(row)
+    axis = bound // 2
+    e_i = jnp.zeros(3).at[axis].set(1.0)
+    sg, bt = sigma[bound], beta[bound]
+    n_exit = sg * e_i
+    h_exit = sg * row[CENTRE][axis] - jnp.where(jnp.isfinite(bt), bt, 0.0)
+    is_exit = kind == EXIT
+    return jnp.where(is_exit, n_exit, row[NORMAL]), jnp.where(is_exit, h_exit, row[OFFSET])
+
+
+def _exit_bound(faces: Faces, face, q):
+    """Which edge bound a ball sliding on ``face`` crosses when it leaves at ``q``."""
+    row = faces.row[jnp.maximum(face, 0)]
+    sigma, beta = _edge_bounds(row)
+    rel = jnp.repeat(q - row[CENTRE], 2)
+    return jnp.argmin(sigma * rel + beta).astype(jnp.int32)
+
+
+def _event_time(settings, f, t, y, args, n, big_h, tau0):
+    """Newton iteration for ``n . q_RK(tau) = big_h`` from ``tau0`` (no gradients)."""
+
+    def g(tau):
+        y1, _ = _rk_step(settings, f, t, tau, y, args)
+        return jnp.dot(n, y1[:3]) - big_h, jnp.dot(n, y1[3:])
+
+    def body(_, tau):
+        val, slope = g(tau)
+        safe = jnp.abs(slope) > 1e-12
+        return jnp.maximum(tau - jnp.where(safe, val / jnp.where(safe, slope, 1.0), 0.0), 0.0)
+
+    tau = jax.lax.fori_loop(0, NEWTON_ITERATIONS, body, tau0)
+    return tau, jnp.abs(g(tau)[0])
+
+
+def _zeno(faces: Faces, gravity, air, params, face, p, v, slack):
+    """Whether the bounce series that starts at (p, v) on ``face`` is summed in closed form
+    (see the module docstring), and its duration, displacement and final velocity."""
+    e, mu_t = params.e, params.mu_t
+    g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
+    f = jnp.maximum(face, 0)
+    n = face_normal(faces, f)
+    w = jnp.dot(v, n)
+    supports = (jnp.dot(n, g_vec) < 0) & (face >= 0) & (w > 0) & (e < 1)
+    n_s = jnp.where(supports, n, jnp.array([0.0, 0.0, 1.0]))
+    s = series(jnp.where(supports, v, n_s), n_s, g_vec)
+    duration, travel, v_full = series_end(s, jnp.inf, e, mu_t)
+    ok = supports & jnp.isfinite(duration) & _zeno_allowed(
+        *jax.lax.stop_gradient((faces, gravity, air, params, f, n, p, v, w, s, duration, travel, slack))
+    )
+    return (ok, jnp.where(ok, duration, 0.0), jnp.where(ok, travel, 0.0),
+            jnp.where(ok, v_full, v))
+
+
+def _zeno_allowed(faces, gravity, air, params, f, n, p, v, w, s, duration, travel, slack):
+    """The decision of ``_zeno`` (no gradients): the series lands on its face, meets no
+    other solid, and is short enough to neglect the air over it."""
+    _, x_one, _ = series_end(s, 1.0, params.e, params.mu_t)
+    row = faces.row[f]
+    lands = on_face(p + travel, row[CENTRE], row[HALF], faces.radius) & on_face(
+        p + x_one, row[CENTRE], row[HALF], faces.radius
+    )
+    # Nothing in the way of a series on an upward face (the slab test of the closed form).
+    up = n[2] > 1.0 - 1e-12
+    u = v.at[2].set(0.0)
+    reach = train_reach(faces, f, p, u, w * w / (2.0 * gravity))
+    clear = jnp.where(up, jnp.linalg.norm(travel[:2]) <= reach, True)
+    g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
+    a_air = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v) - g_vec
+    air_scale = jnp.linalg.norm(a_air)
+    t_zeno = jnp.where(air_scale > 0, jnp.sqrt(2.0 * slack / jnp.where(air_scale > 0, air_scale, 1.0)), jnp.inf)
+    return (duration <= t_zeno) & lands & clear
+
+
+class Plan(eqx.Module):
+    steps: Step  # leading axis max_steps
+    n_steps: Int[Array, ""]
+    complete: Bool[Array, ""]
+
+
+def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
+    """Find the accepted steps and the events (values only)."""
+    scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
+    faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
+    f = _vector_field(air, g, params)
+    order = settings.solver.order(None)
+    g_vec = jnp.array([0.0, 0.0, -1.0]) * g
+    S = settings.max_steps
+    none = jnp.int32(-1)
+    empty = Step(jnp.int32(UNUSED), jnp.int32(FLY), none, none, jnp.int32(0), jnp.asarray(0.0))
+    steps = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), empty)
+    y0 = jnp.concatenate([params.position, params.velocity])
+    h0 = jnp.minimum(t_end, 1e-3)
+    # carry: iteration, records, t, y, mode, support, pending Zeno face, h, done, steps
+    init = (jnp.int32(0), jnp.int32(0), jnp.asarray(0.0), y0, jnp.int32(FLY), none, none, h0,
+            jnp.bool_(False), steps)
+
+    def cond(c):
+        i, k, *_, done, _ = c
+        return (~done) & (i < S) & (k < S)
+
+    def body(c):
+        i, k, t, y, mode, support, pending, h, _, steps = c
+        p, v = y[:3], y[3:]
+        sliding = mode == SLIDE
+        n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(support, 0)), 0.0)
+        args = (n_sup, sliding)
+        a0 = f(y, args)[3:]
+
+        # A Zeno series closed in one piece.
+        zeno_ok, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, pending, p, v, settings.slack)
+        zeno_ok = zeno_ok & (t + z_dur < t_end)
+
+        # The next event on the step's parabola.
+        h_try = jnp.minimum(h, t_end - t)
+        tau_c, face_c = first_contact(faces, p, v, a0, support)
+        tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v, a0), jnp.inf)
+        contact = (tau_c <= h_try) & (tau_c <= tau_x)
+        leaves = (tau_x <= h_try) & ~contact
+        tau_e = jnp.where(contact, tau_c, tau_x)
+        q_e = p + v * jnp.where(leaves, tau_x, 0.0) + 0.5 * a0 * jnp.where(leaves, tau_x, 0.0) ** 2
+        bound = _exit_bound(faces, support, q_e)
+        ev_kind = jnp.where(contact, CONTACT, EXIT)
+        ev_face = jnp.where(contact, face_c, support)
+        n_g, h_g = _guard(faces, ev_kind, ev_face, bound)
+        event = contact | leaves
+        tau_ev, miss = _event_time(settings, f, t, y, args, n_g, h_g, jnp.where(event, tau_e, 0.0))
+        # Newton finds no root within the step: the true path does not reach the face (a
+        # graze within SLACK); step on.
+        event = event & (miss <= settings.slack) & (tau_ev <= h_try)
+        h_step = jnp.where(event, tau_ev, h_try)
+
+        y1, y_err = _rk_step(settings, f, t, h_step, y, args)
+        scale = settings.atol + settings.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))
+        err = jnp.sqrt(jnp.mean((y_err / scale) ** 2))
+        dev = jnp.linalg.norm(y1[:3] - (p + v * h_step + 0.5 * a0 * h_step**2))
+        keep = ((err <= 1.0) & (dev <= settings.slack)) | (h_step <= 0.0) | zeno_ok
+        shrink = jnp.minimum(
+            0.9 * jnp.where(err > 0, err, 1e-10) ** (-1.0 / order),
+            0.9 * (settings.slack / jnp.where(dev > 0, dev, 1e-300)) ** (1.0 / 3.0),
+        )
+        factor = jnp.clip(shrink, 0.2, 5.0)
+
+        last = ~event & (h_step >= t_end - t)
+        kind = jnp.where(zeno_ok, ZENO, jnp.where(event, ev_kind, jnp.where(last, LAST, PLAIN)))
+        rec = Step(
+            kind.astype(jnp.int32), mode, support,
+            jnp.where(zeno_ok, pending, jnp.where(event, ev_face, -1)).astype(jnp.int32),
+            bound, jnp.where(zeno_ok, 0.0, h_step),
+        )
+        steps = jax.tree.map(lambda b, x: jnp.where(keep, b.at[k].set(x), b), steps, rec)
+
+        # The state after an accepted step.
+        p1, v1 = y1[:3], y1[3:]
+        n_face = face_normal(faces, jnp.maximum(ev_face, 0))
+        v_post = jnp.where(kind == CONTACT, contact_velocity(v1, n_face, g_vec, params.e, params.mu_t), v1)
+        settled = (jnp.abs(jnp.dot(v_post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, g_vec) < 0)
+        wall = sliding & (jnp.abs(jnp.dot(n_face, n_sup)) < 1e-12)
+        mode_c = jnp.where(wall | settled, SLIDE, FLY)
+        support_c = jnp.where(wall, support, jnp.where(settled, ev_face, -1))
+        new_mode = jnp.select([zeno_ok, kind == CONTACT, kind == EXIT], [SLIDE, mode_c, FLY], mode)
+        new_support = jnp.select([zeno_ok, kind == CONTACT, kind == EXIT], [pending, support_c, support], support)
+        new_pending = jnp.where((kind == CONTACT) & (mode_c == FLY), ev_face, -1)
+        t_new = jnp.where(zeno_ok, t + z_dur, t + h_step)
+        y_new = jnp.where(zeno_ok, jnp.concatenate([p + z_travel, z_vel]), jnp.concatenate([p1, v_post]))
+        # After an event step the proposal stands (the event cut the step short).
+        h_new = jnp.where(event | zeno_ok, h, jnp.maximum(h_step, 1e-12) * factor)
+        h_rej = jnp.maximum(h_step, 1e-12) * factor
+
+        return (
+            i + 1,
+            jnp.where(keep, k + 1, k),
+            jnp.where(keep, t_new, t),
+            jnp.where(keep, y_new, y),
+            jnp.where(keep, new_mode, mode).astype(jnp.int32),
+            jnp.where(keep, new_support, support).astype(jnp.int32),
+            jnp.where(keep, new_pending, pending).astype(jnp.int32),
+            jnp.where(keep, h_new, h_rej),
+            keep & (kind == LAST),
+            steps,
+        )
+
+    _, k, *_, done, steps = jax.lax.while_loop(cond, body, init)
+    return Plan(steps=steps, n_steps=k, complete=done)
+
+
+def replay(scene, params, t_end, steps: Step, settings: OdeSettings) -> Node:
+    """Recompute every accepted step differentiably (``lax.scan``)."""
+    faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
+    f = _vector_field(air, g, params)
+    g_vec = jnp.array([0.0, 0.0, -1.0]) * g
+
+    def apply(carry, st: Step):
+        t, y = carry
+        p, v = y[:3], y[3:]
+        sliding = st.mode == SLIDE
+        n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(st.support, 0)), 0.0)
+        args = (n_sup, sliding)
+        is_event = (st.kind == CONTACT) | (st.kind == EXIT)
+        n_g, h_g = _guard(faces, st.kind, st.face, st.bound)
+        # One Newton step at the root found by plan: its value is the root, its derivative
+        # the implicit-function event-time sensitivity.
+        tau_star = jax.lax.stop_gradient(st.h)
+
+        def guard(tau):
+            y1, _ = _rk_step(settings, f, t, tau, y, args)
+            return jnp.dot(n_g, y1[:3]) - h_g
+
+        gval, gslope = jax.jvp(guard, (tau_star,), (jnp.ones_like(tau_star),))
+        gslope = jnp.where(is_event & (jnp.abs(gslope) > 0), gslope, 1.0)
+        tau_event = tau_star - jnp.where(is_event, gval / gslope, 0.0)
+        h = jnp.select([st.kind == PLAIN, st.kind == LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
+        y1, _ = _rk_step(settings, f, t, h, y, args)
+        p1, v1 = y1[:3], y1[3:]
+        n_face = face_normal(faces, jnp.maximum(st.face, 0))
+        v_post = jnp.where(st.kind == CONTACT, contact_velocity(v1, n_face, g_vec, params.e, params.mu_t), v1)
+        a0 = f(y, args)[3:]
+        a1 = f(y1, args)[3:]
+        # A Zeno series summed in closed form.
+        zeno = st.kind == ZENO
+        _, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, jnp.where(zeno, st.face, -1), p, v, settings.slack)
+        t1 = jnp.where(zeno, t + z_dur, t + h)
+        p1 = jnp.where(zeno, p + z_travel, p1)
+        v1 = jnp.where(zeno, z_vel, v1)
+        v_post = jnp.where(zeno, z_vel, v_post)
+        node = Node(t, p, v, jnp.where(zeno, g_vec, a0), t1, p1, v1, jnp.where(zeno, g_vec, a1), v_post)
+        return (t1, jnp.concatenate([p1, v_post])), node
+
+    init = (jnp.zeros_like(params.e), jnp.concatenate([params.position, params.velocity]))
+    _, nodes = jax.lax.scan(apply, init, steps)
+    return nodes
+
+
+def sample(nodes: Node, steps: Step, faces_normal_of, e, mu_t, g, t):
+    """Position and velocity at times ``t`` from the nodes: quintic Hermite interpolation
+    within a step (exact for polynomials of degree 5; the RK steps themselves are the
+    accuracy limit), the closed form within a summed Zeno series."""
+    shape = jnp.shape(t)
+    t = jnp.reshape(t, (-1,))
+    used = steps.kind != UNUSED
+    starts = jnp.where(used, nodes.t0, jnp.inf)
+    k = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
+    nd = jax.tree.map(lambda x: x[k], nodes)
+    h = nd.t1 - nd.t0
+    hs = jnp.where(h > 0, h, 1.0)
+    s = jnp.clip((t - nd.t0) / hs, 0.0, 1.0)[:, None]
+    hh = hs[:, None]
+    # Quintic Hermite basis on [0, 1] for value, first and second derivative at both ends.
+    s2, s3, s4, s5 = s**2, s**3, s**4, s**5
+    h00 = 1 - 10 * s3 + 15 * s4 - 6 * s5
+    h10 = s - 6 * s3 + 8 * s4 - 3 * s5
+    h20 = 0.5 * (s2 - 3 * s3 + 3 * s4 - s5)
+    h01 = 10 * s3 - 15 * s4 + 6 * s5
+    h11 = -4 * s3 + 7 * s4 - 3 * s5
+    h21 = 0.5 * (s3 - 2 * s4 + s5)
+    pos = h00 * nd.p0 + h10 * hh * nd.v0 + h20 * hh**2 * nd.a0 + h01 * nd.p1 + h11 * hh * nd.v1 + h21 * hh**2 * nd.a1
+    d00 = -30 * s2 + 60 * s3 - 30 * s4
+    d10 = 1 - 18 * s2 + 32 * s3 - 15 * s4
+    d20 = 0.5 * (2 * s - 9 * s2 + 12 * s3 - 5 * s4)
+    d01 = 30 * s2 - 60 * s3 + 30 * s4
+    d11 = -12 * s2 + 28 * s3 - 15 * s4
+    d21 = 0.5 * (3 * s2 - 8 * s3 + 5 * s4)
+    vel = (d00 * nd.p0 + d10 * hh * nd.v0 + d20 * hh**2 * nd.a0 + d01 * nd.p1 + d11 * hh * nd.v1 + d21 * hh**2 * nd.a1) / hh
+
+    # Inside a Zeno series: the closed form of estim._train.
+    zeno = (steps.kind[k] == ZENO)
+    a = jnp.array([0.0, 0.0, -1.0]) * g
+
+    def in_series(v0, normal, tau):
+        ok = jnp.dot(v0, normal) > 0
+        normal = jnp.where(ok, normal, jnp.array([0.0, 0.0, 1.0]))
+        sr = series(jnp.where(ok, v0, normal), normal, a)
+        return state_at(sr, tau, e, mu_t, jnp.inf)
+
+    normal = faces_normal_of(jnp.maximum(steps.face[k], 0))
+    # Inputs of the unused branch are kept harmless: a NaN there would poison reverse-mode
+    # derivatives through the where below.
+    tau_z = jnp.where(zeno, jnp.clip(t - nd.t0, 0.0, nd.t1 - nd.t0), 0.0)
+    normal = jnp.where(zeno[:, None], normal, jnp.array([0.0, 0.0, 1.0]))
+    v_z0 = jnp.where(zeno[:, None], nd.v0, normal)
+    dp, v_z = jax.vmap(in_series)(v_z0, normal, tau_z)
+    after = t >= nd.t1
+    pos = jnp.where(zeno[:, None], nd.p0 + dp, pos)
+    vel = jnp.where(zeno[:, None], v_z, vel)
+    pos = jnp.where(after[:, None], nd.p1, pos)
+    vel = jnp.where(after[:, None], nd.v1_post, vel)
+    return pos.reshape(shape + (3,)), vel.reshape(shape + (3,))
+
+
+class OdeSolution(AbstractSolution):
+    """The ODE path's solution: the accepted steps (dense output by quintic Hermite
+    interpolation, closed form inside summed Zeno series).
+
+    Attributes:
+        nodes: start and end state of every step, per ball.
+        steps: the steps' kinds and faces, per ball.
+        normals: the unit normal of every face (per ball: the face table depends on r).
+        e, mu_t, gravity: what the Zeno closed forms need.
+    """
+
+    nodes: Node
+    steps: Step
+    normals: Float[Array, "*batch faces 3"]
+    e: Float[Array, "*batch"]
+    mu_t: Float[Array, "*batch"]
+    gravity: Float[Array, ""]
+
+    def evaluate(self, t):
+        batch = self.e.shape
+
+        def flat(x):
+            return x.reshape((-1,) + x.shape[len(batch):])
+
+        nodes, steps = jax.tree.map(flat, self.nodes), jax.tree.map(flat, self.steps)
+
+        def one(nd, st, normals, e, mu_t):
+            return sample(nd, st, lambda f: normals[f], e, mu_t, self.gravity, t)
+
+        p, v = jax.vmap(one)(nodes, steps, flat(self.normals), flat(self.e), flat(self.mu_t))
+        return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
+
+
+def list_events(nodes: Node, steps: Step, max_events: int) -> Events:
+    """The contact events of one ball: every CONTACT step, and the end of every summed
+    Zeno series (a settle event, ``REST``)."""
+    is_event = (steps.kind == CONTACT) | (steps.kind == ZENO)
+    (idx,) = jnp.nonzero(is_event, size=max_events, fill_value=0)
+    total = jnp.sum(is_event)
+    valid = jnp.arange(max_events) < total
+    nd = jax.tree.map(lambda x: x[idx], nodes)
+    st = jax.tree.map(lambda x: x[idx], steps)
+    settle = (st.kind == ZENO) | (jnp.linalg.norm(nd.v1 - nd.v1_post, axis=1) <= REST_SPEED)
+    zero = jnp.zeros_like(nd.p1)
+    return Events(
+        t=jnp.where(valid, nd.t1, jnp.inf),
+        position=jnp.where(valid[:, None], nd.p1, zero),
+        velocity_pre=jnp.where(valid[:, None], nd.v1, zero),
+        velocity_post=jnp.where(valid[:, None], nd.v1_post, zero),
+        face=jnp.where(valid, st.face, -1).astype(jnp.int32),
+        kind=jnp.where(valid, jnp.where(settle, REST, IMPACT), -1).astype(jnp.int32),
+        count=jnp.minimum(total, max_events).astype(jnp.int32),
+        truncated=total > max_events,
+    )
+
+
+def solve_one(scene, params, t_end, ts, settings: OdeSettings, max_events: int):
+    """Plan, replay, sample and list events for one ball."""
+    pl = plan(scene, params, t_end, settings)
+    nodes = replay(scene, params, t_end, pl.steps, settings)
+    faces = faces_for(scene, params.radius)
+    normals = faces.row[:, NORMAL]
+    pos, vel = sample(nodes, pl.steps, lambda f: normals[f], params.e, params.mu_t, scene.gravity, ts)
+    events = list_events(nodes, pl.steps, max_events)
+    last = jnp.maximum(pl.n_steps - 1, 0)
+    final = State(t_end, nodes.p1[last], nodes.v1_post[last])
+    return pos, vel, events, final, nodes, pl.steps, normals, pl.complete

@@ -1,0 +1,210 @@
+"""The ODE path (scenes with air): against closed forms, the closed-form path, MuJoCo and
+finite differences.
+
+Every call here uses a batch of three balls and the default sample times, so the whole file
+compiles the ODE program once per scene structure (vacuum / air) and once for jacfwd.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import estim
+from estim import _ode
+
+SEED = {"bocce": 0.55, "golf": 0.70, "pingpong": 0.85}
+G = 9.81
+
+
+@pytest.fixture(scope="module")
+def stairs():
+    return estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml")
+
+
+@pytest.fixture(scope="module")
+def stairs_air():
+    return estim.load_scene(ROOT / "data" / "scenes" / "stairs_air.xml")
+
+
+def seed_params(scene, vx0=1.15, e=None, mu_t=0.98, **kw):
+    """The three balls of the seed, released as in the seed notebook."""
+    rows = []
+    for name, e_seed in SEED.items():
+        b = scene.ball(name)
+        rows.append(estim.Params.for_ball(
+            scene, name, e=e_seed if e is None else e, mu_t=mu_t, velocity=(vx0, 0.0, 0.0),
+            position=(-0.20, 0.0, 1.40 + b.radius + 0.25), **kw))
+    return jax.tree.map(lambda *x: jnp.stack(x), *rows)
+
+
+def test_scene_without_air_never_traces_the_ode_solver(stairs, stairs_air):
+    before = _ode.TRACE_COUNT
+    traj = estim.simulate(stairs, seed_params(stairs), 2.3)
+    assert np.asarray(traj.events.count).tolist() == [9, 6, 4]  # the closed-form seed numbers
+    assert _ode.TRACE_COUNT == before
+    # ... while a scene with air does (traced only, not compiled, with a fresh step budget).
+    params = seed_params(stairs_air)
+    jax.make_jaxpr(lambda: estim.simulate(stairs_air, params, 2.3, max_steps=77))()
+    assert _ode.TRACE_COUNT == before + 1
+
+
+def test_ode_path_without_air_matches_closed_form(stairs):
+    """Forced onto the ODE path, a vacuum gives parabolas, which every Runge-Kutta method of
+    order >= 2 integrates exactly: the two paths agree to rounding."""
+    params = seed_params(stairs)
+    exact = estim.simulate(stairs, params, 2.3)
+    ode = estim.simulate(stairs, params, 2.3, solver=diffrax.Tsit5())
+    assert np.asarray(ode.events.count).tolist() == [9, 6, 4]
+    np.testing.assert_allclose(ode.final.position, exact.final.position, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ode.events.t[:, :4], exact.events.t[:, :4], rtol=0, atol=1e-10)
+    # Dense output at the contact times and in between.
+    ts = jnp.linspace(0.0, 2.3, 47)
+    np.testing.assert_allclose(ode.evaluate(ts)[0], exact.evaluate(ts)[0], rtol=0, atol=1e-9)
+
+
+def test_zeno_example_rests_on_ode_path(stairs):
+    """The Zeno golf ball of the issue: at rest on the second tread at x ~ 0.733, t ~ 1.298,
+    on the ODE path too (the series is summed in closed form, not stepped through)."""
+    params = seed_params(stairs, vx0=0.801, e=0.518, mu_t=0.966)
+    exact = estim.simulate(stairs, params, 2.3)
+    ode = estim.simulate(stairs, params, 2.3, solver=diffrax.Tsit5())
+    np.testing.assert_allclose(ode.final.position[1], exact.final.position[1], rtol=0, atol=1e-9)
+    assert ode.final.position[1, 0] == pytest.approx(0.7334, abs=1e-4)
+    settle = np.asarray(ode.events.kind[1]) == 1
+    assert settle.any() and float(ode.events.t[1][settle][0]) == pytest.approx(1.2978, abs=1e-4)
+    assert np.all(np.asarray(ode.complete))
+
+
+def quadratic_fall(scene, params, drop):
+    """First contact of a ball released from rest ``drop`` m above its contact height, under
+    gravity and quadratic drag only: z = z0 - (vt^2/g) ln cosh(g t / vt) with terminal
+    speed vt = sqrt(2 m g / (rho C_D A))."""
+    rho = float(scene.air.density)
+    area = np.pi * np.asarray(params.radius) ** 2
+    vt = np.sqrt(2 * np.asarray(params.mass) * G / (rho * np.asarray(params.drag_coefficient) * area))
+    t = vt / G * np.arccosh(np.exp(G * drop / vt**2))
+    return t, vt * np.tanh(G * t / vt)
+
+
+def test_vertical_fall_with_quadratic_drag_matches_closed_form(stairs):
+    scene = stairs.with_air(estim.Air(density=1.204))
+    drop = 0.9
+    rows = [estim.Params.for_ball(scene, n, e=0.5, mu_t=0.9,
+                                  position=(0.0, 0.0, 1.40 + scene.ball(n).radius + drop))
+            for n in SEED]
+    params = jax.tree.map(lambda *x: jnp.stack(x), *rows)
+    traj = estim.simulate(scene, params, 0.8, rtol=1e-11, atol=1e-12)
+    t_c, v_c = quadratic_fall(scene, params, drop)
+    np.testing.assert_allclose(traj.events.t[:, 0], t_c, rtol=1e-9)
+    np.testing.assert_allclose(-traj.events.velocity_pre[:, 0, 2], v_c, rtol=1e-9)
+    # Drag matters for the 5 g ping-pong ball, hardly for the 0.92 kg bocce ball.
+    t_vac = np.sqrt(2 * drop / G)
+    assert (t_c[2] - t_vac) > 20 * (t_c[0] - t_vac) > 0
+
+
+def test_vertical_fall_with_linear_drag_matches_closed_form(stairs):
+    """z = z0 - (g/k) t + (g/k^2)(1 - exp(-k t)), k = 6 pi eta r / m (Stokes)."""
+    eta = 5e-3  # a viscous fluid, so that the effect is large
+    scene = stairs.with_air(estim.Air(viscosity=eta))
+    drop = 0.9
+    rows = [estim.Params.for_ball(scene, n, e=0.5, mu_t=0.9,
+                                  position=(0.0, 0.0, 1.40 + scene.ball(n).radius + drop))
+            for n in SEED]
+    params = jax.tree.map(lambda *x: jnp.stack(x), *rows)
+    traj = estim.simulate(scene, params, 1.5, rtol=1e-11, atol=1e-12)
+    k = 6 * np.pi * eta * np.asarray(params.radius) / np.asarray(params.mass)
+    t = np.full(3, np.sqrt(2 * drop / G))
+    for _ in range(50):  # Newton on the closed form
+        fall = G / k * t - G / k**2 * (1 - np.exp(-k * t)) - drop
+        speed = G / k * (1 - np.exp(-k * t))
+        t = t - fall / speed
+    np.testing.assert_allclose(traj.events.t[:, 0], t, rtol=1e-9)
+    np.testing.assert_allclose(-traj.events.velocity_pre[:, 0, 2], speed, rtol=1e-8)
+
+
+def test_magnus_flight_matches_closed_form(stairs):
+    """With spin omega along y, no drag and low spin ratio (C_L = 1.5 S), the velocity obeys
+    v' = g + W x v, W = (3 rho A r / (4 m)) omega: in the xz-plane u = vx + i vz rotates,
+    u(t) = (u0 + g/W) exp(-i W t) - g/W, and x + i z integrates it."""
+    scene = stairs.with_air(estim.Air(density=1.204))
+    omega = 3.0
+    rows = [estim.Params.for_ball(scene, n, e=0.5, mu_t=0.9, velocity=(3.0, 0.0, 1.0),
+                                  position=(-0.2, 0.0, 2.2), drag_coefficient=0.0,
+                                  spin=(0.0, s * omega, 0.0))
+            for n, s in zip(SEED, (1.0, -1.0, 1.0), strict=True)]
+    params = jax.tree.map(lambda *x: jnp.stack(x), *rows)
+    traj = estim.simulate(scene, params, 1.0, rtol=1e-11, atol=1e-12)
+    r, m = np.asarray(params.radius), np.asarray(params.mass)
+    w = 3 * 1.204 * np.pi * r**2 * r / (4 * m) * omega * np.array([1.0, -1.0, 1.0])
+    ts = np.linspace(0.0, 0.15, 7)  # before any contact
+    u0 = 3.0 + 1.0j
+    z = (-0.2 + 2.2j) + (u0 + G / w[:, None]) * (1 - np.exp(-1j * w[:, None] * ts)) / (1j * w[:, None]) - G / w[:, None] * ts
+    assert float(traj.events.t[:, 0].min()) > 0.15
+    speed = 3.0  # |v| >= vx ~ 3 m/s: the spin ratio r omega / |v| stays below 0.1, C_L = 1.5 S
+    assert np.all(r * omega / speed < 0.1)
+    pos = np.asarray(traj.evaluate(jnp.asarray(ts))[0])
+    np.testing.assert_allclose(pos[..., 0], z.real, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(pos[..., 2], z.imag, rtol=0, atol=1e-9)
+    # Moving along +x, spin along -y is backspin and lifts; along +y, topspin, dips.
+    z_vacuum = 2.2 + u0.imag * ts[-1] - 0.5 * G * ts[-1] ** 2
+    assert pos[1, -1, 2] > z_vacuum > pos[0, -1, 2]
+
+
+def test_air_matches_mujoco_fluid_model():
+    """MuJoCo's inertia-box fluid model for a sphere is estim's quadratic drag with
+    C_D = 2.4 / pi (per axis) and Stokes drag times sqrt(12/5) / 2 (see estim._effects):
+    check both against MuJoCo's own acceleration for a ball moving along x."""
+    r, m, v = 0.02, 0.0027, 5.0
+    for density, viscosity in ((1.2, 0.0), (0.0, 1.8e-5)):
+        xml = f"""<mujoco><option gravity="0 0 0" density="{density}" viscosity="{viscosity}"/>
+        <worldbody><body><freejoint/><geom type="sphere" size="{r}" mass="{m}"/></body>
+        </worldbody></mujoco>"""
+        model = mujoco.MjModel.from_xml_string(xml)
+        data = mujoco.MjData(model)
+        data.qvel[:3] = [v, 0, 0]
+        mujoco.mj_forward(model, data)
+        air = estim.Air(density=density, viscosity=viscosity * np.sqrt(12 / 5) / 2)
+        a = estim.air_acceleration(air, r, m, 2.4 / np.pi, jnp.zeros(3), jnp.array([v, 0.0, 0.0]))
+        np.testing.assert_allclose(float(a[0]), data.qacc[0], rtol=1e-12)
+
+
+def test_drag_changes_the_stairs_and_event_times_converge(stairs, stairs_air):
+    params = seed_params(stairs_air)
+    vac = estim.simulate(stairs, seed_params(stairs), 2.3)
+    ref = estim.simulate(stairs_air, params, 2.3, rtol=1e-12, atol=1e-13)
+    assert np.all(np.asarray(ref.complete))
+    shift = np.abs(np.asarray(ref.events.t[:, 1] - vac.events.t[:, 1]))
+    assert shift[2] > shift[0]  # the light ball feels the air more
+    errors = []
+    for rtol in (1e-5, 1e-7, 1e-9):
+        traj = estim.simulate(stairs_air, params, 2.3, rtol=rtol, atol=rtol * 0.1)
+        errors.append(float(np.max(np.abs(np.asarray(traj.events.t[:, :3] - ref.events.t[:, :3])))))
+    assert errors[2] <= errors[1] <= errors[0] + 1e-12, errors
+    assert errors[2] < 1e-8, errors
+
+
+def test_drag_gradients_match_finite_differences(stairs_air):
+    """d(final x, second bounce time)/d(e, mu_t, vx0, C_D), ping-pong ball, by jacfwd through
+    the ODE path and by central differences at tight tolerances."""
+    base = seed_params(stairs_air)
+
+    def out(theta):
+        params = estim.Params(
+            base.e.at[2].set(theta[0]), base.mu_t.at[2].set(theta[1]), base.radius,
+            base.position, base.velocity.at[2, 0].set(theta[2]), mass=base.mass,
+            drag_coefficient=base.drag_coefficient.at[2].set(theta[3]), spin=base.spin,
+        )
+        traj = estim.simulate(stairs_air, params, 2.3, rtol=1e-12, atol=1e-13)
+        return jnp.stack([traj.final.position[2, 0], traj.events.t[2, 1]])
+
+    theta = jnp.array([0.85, 0.98, 1.15, 0.47])
+    jac = np.asarray(jax.jacfwd(out)(theta))
+    assert np.all(np.isfinite(jac))
+    eps = 1e-6
+    fd = np.stack([(out(theta.at[i].add(eps)) - out(theta.at[i].add(-eps))) / (2 * eps)
+                   for i in range(4)], axis=1)
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
