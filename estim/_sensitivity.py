@@ -87,19 +87,23 @@ def event_sensitivities(
     require_x64()
     theta = jnp.asarray(theta, dtype=jnp.float64)
 
-    def unpack(th):
-        out = make(th)
-        if isinstance(out, tuple):
-            return out
-        if scene is None:
-            raise ValueError("pass scene=... when make returns only Params")
-        return scene, out
+    if scene is None and not isinstance(jax.eval_shape(make, theta), tuple):
+        raise ValueError("pass scene=... when make returns only Params")
+    # make and scene go to the compiled function as they are (not wrapped in a new closure),
+    # so that calling again with the same make reuses the compiled program.
+    return _sensitivities(make, scene, theta, jnp.asarray(t_end, dtype=jnp.float64), max_segments, max_events, grazing_speed)
 
-    return _sensitivities(unpack, theta, jnp.asarray(t_end, dtype=jnp.float64), max_segments, max_events, grazing_speed)
+
+def _unpack(make, scene, th):
+    out = make(th)
+    return out if isinstance(out, tuple) else (scene, out)
 
 
 @eqx.filter_jit
-def _sensitivities(unpack, theta, t_end, max_segments, max_events, grazing_speed):
+def _sensitivities(make, scene, theta, t_end, max_segments, max_events, grazing_speed):
+    def unpack(th):
+        return _unpack(make, scene, th)
+
     def solve(th):
         sc, prm = unpack(th)
         pl = plan(sc, prm, t_end, max_segments)
