@@ -194,11 +194,12 @@ def test_loss_gradient_matches_finite_differences(stairs):
     # sample sits on the release kink; every event time away from the samples
     phi0 = np.array([truth[ball]["e"] + 0.01, truth[ball]["mu_t"] - 0.005, truth[ball]["vx0"] + 0.02,
                      spec.position[0] + 0.003, spec.position[2] - 0.002, 0.05, -0.004,
-                     spec.position[1], 0.0])
+                     spec.position[1], 0.0, 0.47, 0.0])  # drag and spin: no effect in a vacuum
     assert len(phi0) == len(PARAMETERS)
     mask = np.isfinite(pos)
     problem = _Problem(t=jnp.asarray(t), obs=jnp.asarray(np.nan_to_num(pos)), mask=jnp.asarray(mask),
-                       radius=jnp.asarray(spec.radius), fixed=jnp.asarray(phi0), scale=jnp.asarray(0.002))
+                       radius=jnp.asarray(spec.radius), mass=jnp.asarray(spec.mass),
+                       fixed=jnp.asarray(phi0), scale=jnp.asarray(0.002))
 
     @jax.jit
     def loss(phi):
