@@ -1,4 +1,4 @@
-"""The ``estim`` command line: ``simulate``, ``fit``, ``bench speed``, ``demo``."""
+"""The ``estim`` command line: ``simulate``, ``fit``, ``replay``, ``bench speed``, ``demo``."""
 
 from __future__ import annotations
 
@@ -121,11 +121,35 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="the main job on the bundled data: fit, table, plots",
                           description="Fit the bundled tracks (data/tracks/stairs_demo.csv): "
-                                      "table, fit.json and plots into --out; also simulate the "
-                                      "seed scene (summary.json, heights.png).")
+                                      "table, fit.json, plots and replays (replay.gif, "
+                                      "sideview.gif) into --out; also simulate the seed scene "
+                                      "(summary.json, heights.png, energy.png).")
     demo.add_argument("--out", required=True, help="output directory (created if missing)")
     demo.add_argument("--scene", default=None, help="scene file (default: the seed scene)")
     demo.set_defaults(func=_cmd_demo)
+
+    rep = sub.add_parser("replay", help="render the fitted model against the tracks (GIF/MP4)",
+                         description="Replay a fit: MuJoCo renders the fitted balls offscreen, "
+                                     "with the measured samples as translucent halos of the same "
+                                     "colour, from a side camera; a caption gives the time and the "
+                                     "fitted parameters. --view side draws the same with matplotlib "
+                                     "(no OpenGL needed). Exit code 0 on success, 1 when MuJoCo "
+                                     "cannot render here, 2 on bad input.")
+    rep.add_argument("tracks", help="tracks CSV (t,ball,x,z[,y] in s and m)")
+    rep.add_argument("fit", help="fit.json written by `estim fit`")
+    rep.add_argument("--scene", default=None,
+                     help="MJCF scene file (default: data/scenes/stairs.xml)")
+    rep.add_argument("--out", default="replay.gif",
+                     help="output file, .gif or .mp4 (MP4 needs ffmpeg on PATH; default replay.gif)")
+    rep.add_argument("--fps", type=_finite, default=25.0,
+                     help="frames per second (default 25; a GIF shows at most 50)")
+    rep.add_argument("--width", type=_positive_int, default=640, help="picture width in pixels (default 640)")
+    rep.add_argument("--height", type=_positive_int, default=360, help="picture height in pixels (default 360)")
+    rep.add_argument("--trail", type=_finite, default=0.3,
+                     help="seconds of recent measured samples shown as dots (default 0.3; 0: none)")
+    rep.add_argument("--view", choices=("mujoco", "side"), default="mujoco",
+                     help="mujoco: 3-D offscreen rendering (default); side: matplotlib x-z view")
+    rep.set_defaults(func=_cmd_replay)
     return parser
 
 
@@ -331,7 +355,53 @@ def _cmd_demo(args) -> int:
     fit_args = argparse.Namespace(tracks=str(DEMO_TRACKS), scene=args.scene, out=args.out,
                                   json=False, loss="cauchy", pixels=False, frame_interval=None,
                                   metres_per_pixel=None, ball=None, from_bounce=0)
-    return _cmd_fit(fit_args)
+    code = _cmd_fit(fit_args)
+    from ._demo import write_replays
+
+    print("wrote " + ", ".join(write_replays(args.out, scene_path=args.scene)))
+    return code
+
+
+# --------------------------------------------------------------------------- replay
+
+
+def _cmd_replay(args) -> int:
+    import os
+
+    from ._replay import EncoderNotFoundError, RenderError, check_output
+
+    for what, path in (("tracks", args.tracks), ("fit", args.fit)):
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"{what} file not found: {path}")
+    if not args.fps > 0:
+        raise UsageError(f"--fps must be > 0, got {args.fps}")
+    if args.trail < 0:
+        raise UsageError(f"--trail must be >= 0 (seconds), got {args.trail}")
+    out_dir = os.path.dirname(os.path.abspath(args.out))
+    if not os.path.isdir(out_dir):
+        raise UsageError(f"--out {args.out}: the folder {out_dir} does not exist")
+    try:
+        check_output(args.out, args.fps)  # suffix, GIF frame rate, ffmpeg: before any work
+    except EncoderNotFoundError as err:
+        raise UsageError(str(err)) from None
+    scene = args.scene or default_scene_path()
+    options = dict(fps=args.fps, width=args.width, height=args.height, trail=args.trail)
+    if args.view == "side":
+        from ._sideview import render_sideview
+
+        info = render_sideview(scene, args.fit, args.tracks, args.out, **options)
+    else:
+        from ._replay import render_replay
+
+        try:
+            info = render_replay(scene, args.fit, args.tracks, args.out, **options)
+        except RenderError as err:
+            print(f"estim replay: error: {err}", file=sys.stderr)
+            return 1
+    print(f"wrote {info.path}: {info.n_frames} frames at {info.fps:g} fps, "
+          f"t = {info.t_start:.3f} .. {info.t_end:.3f} s, balls {', '.join(info.balls)} "
+          f"({info.renderer})")
+    return 0
 
 
 # --------------------------------------------------------------------------- fit
@@ -339,7 +409,7 @@ def _cmd_demo(args) -> int:
 
 def _also(args, base) -> dict:
     """``free=`` for the fit when --also asks for more parameters (else the default)."""
-    if not args.also:
+    if not getattr(args, "also", None):
         return {}
     return {"free": tuple(base) + tuple(n for n in dict.fromkeys(args.also) if n not in base)}
 

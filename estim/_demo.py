@@ -1,4 +1,5 @@
-"""``estim demo``: the seed scene's three balls, a summary table and a height plot."""
+"""``estim demo``: the seed scene's three balls, a summary table, height and energy plots;
+the replays of the demo fit."""
 
 from __future__ import annotations
 
@@ -34,8 +35,8 @@ def default_scene_path() -> str:
 def run_demo(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None = None,
              n_samples: int = 500) -> dict:
     """Simulate the seed scene's balls together (one batched call), write
-    ``summary.json`` and ``heights.png`` into ``out_dir`` (created if missing) and
-    return the summary."""
+    ``summary.json``, ``heights.png`` (with the impacts) and ``energy.png`` into
+    ``out_dir`` (created if missing) and return the summary."""
     import jax.numpy as jnp
 
     import estim
@@ -87,30 +88,36 @@ def run_demo(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None
     with open(out / "summary.json", "w") as fh:
         json.dump(summary, fh, indent=2)
         fh.write("\n")
-    _plot(out / "heights.png", np.asarray(ts), np.asarray(traj.position[..., 2]), rows)
-    summary["files"] = [str(out / "summary.json"), str(out / "heights.png")]
+    from ._plots import plot_energy, plot_heights
+
+    names = [b.name for b in balls]
+    plot_heights(traj, names, out / "heights.png",
+                 title="Seed scene: heights and the located bounce events (exact solution)")
+    plot_energy(traj, names, out / "energy.png", gravity=float(scene.gravity))
+    summary["files"] = [str(out / n) for n in ("summary.json", "heights.png", "energy.png")]
     return summary
 
 
-def _plot(path: Path, ts, z, rows) -> None:
-    import matplotlib
+def write_replays(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None = None,
+                  tracks_path: str | os.PathLike = DEMO_TRACKS, fps: float = 25.0) -> list[str]:
+    """The replays of ``out_dir/fit.json`` against the tracks: ``replay.gif`` (MuJoCo) and
+    ``sideview.gif`` (matplotlib). Where MuJoCo cannot render (no OpenGL), says so on
+    stderr and writes the side view only. Returns the files written."""
+    import sys
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ._replay import RenderError, render_replay
+    from ._sideview import render_sideview
 
-    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
-    for i, row in enumerate(rows):
-        (line,) = ax.plot(ts, z[i], lw=1.5, label=f"{row['ball']} (e = {row['e']:.2f}, {row['bounces']} bounces)")
-        ax.plot(row["impact_t"], row["impact_z"], "v", color=line.get_color(), ms=6)
-    ax.plot([], [], "v", color="0.4", label="impacts")
-    ax.set_xlabel("time t (s)")
-    ax.set_ylabel("centre height z (m)")
-    ax.set_title("Seed scene: balls bouncing down the stairs (exact event-driven solution)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    scene_path = str(scene_path) if scene_path is not None else default_scene_path()
+    out = Path(out_dir)
+    fit_json = out / "fit.json"
+    files = []
+    try:
+        files.append(render_replay(scene_path, fit_json, tracks_path, out / "replay.gif", fps=fps).path)
+    except RenderError as err:
+        print(f"estim demo: replay.gif not written: {err}", file=sys.stderr)
+    files.append(render_sideview(scene_path, fit_json, tracks_path, out / "sideview.gif", fps=fps).path)
+    return files
 
 
 def format_summary(summary: dict) -> str:

@@ -183,16 +183,24 @@ def energy_curve(ts, position, velocity, event, g: float):
     return t[order], e[order]
 
 
-def plot_energy(traj, balls, path=None, *, title: str | None = None) -> Figure:
+def plot_energy(traj, balls, path=None, *, gravity: float | None = None,
+                title: str | None = None) -> Figure:
     """Normalised mechanical energy ``E / E0`` per ball, ``E = g z + |v|^2 / 2`` from the
     model (per unit mass, potential energy from ``z = 0``), with a marker after each impact.
 
     In free flight under gravity alone E is constant; an impact keeps ``e^2`` of the normal
     (vertical) kinetic energy and ``mu_t^2`` of the tangential, so the curve is a staircase
-    whose steps show where the energy goes. Arguments as for :func:`plot_heights`.
+    whose steps show where the energy goes (in air, drag also drains it in flight).
+    ``gravity`` is g (m/s^2), by default the one the trajectory was solved with; other
+    arguments as for :func:`plot_heights`.
     """
     names, ts, pos, vel, events = _per_ball(traj, balls)
-    g = float(np.asarray(traj.gravity))
+    if gravity is None:
+        gravity = getattr(getattr(traj, "solution", None), "gravity", None)
+        gravity = getattr(traj, "gravity", None) if gravity is None else gravity
+    if gravity is None:
+        raise ValueError("plot_energy: pass gravity= (the scene's g), the trajectory does not hold it")
+    g = float(np.asarray(gravity))
     fig = Figure(figsize=(8, 4.5), layout="tight")
     ax = fig.subplots()
     for i, (ball, ev) in enumerate(zip(names, events, strict=True)):
@@ -206,8 +214,8 @@ def plot_energy(traj, balls, path=None, *, title: str | None = None) -> Figure:
                 label=f"{ball} after each impact")
     ax.set_xlabel("time t [s]")
     ax.set_ylabel("E / E0  (E = g z + |v|^2 / 2)")
-    ax.set_title(title or "Normalised mechanical energy per ball: each bounce keeps e^2 of "
-                          "the vertical kinetic energy")
+    ax.set_title(title or "Normalised mechanical energy per ball\n(each bounce keeps e^2 of "
+                          "the vertical kinetic energy)", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper right", fontsize=7, ncol=2)
+    ax.legend(loc="lower left", fontsize=7, ncol=2)  # the staircases fall to the right
     return _save(fig, path)

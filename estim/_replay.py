@@ -272,7 +272,8 @@ def _nearest_samples(t: np.ndarray, pos: np.ndarray, ts: np.ndarray) -> np.ndarr
 class SideCamera:
     """A MuJoCo free camera: ``lookat`` point (m), ``distance`` (m), ``azimuth`` and
     ``elevation`` (degrees; azimuth 90 looks along +y), vertical field of view ``fovy``
-    (degrees, the model's ``visual/global/fovy``)."""
+    (degrees; a free camera takes it from the model's ``visual/global/fovy``, which
+    :func:`render_frames` sets to this value in its copy of the model)."""
 
     lookat: tuple[float, float, float]
     distance: float
@@ -325,10 +326,14 @@ def _solid_corners(model) -> np.ndarray:
 
 
 def side_camera(model, motion: ReplayMotion | None, width: int, height: int, *,
-                elevation: float = -15.0, margin: float = 0.04) -> SideCamera:
+                elevation: float = -15.0, fovy: float = 30.0, margin: float = 0.04) -> SideCamera:
     """A camera looking along +y (from -y) that frames the scene's boxes and every position
     of ``motion`` (balls and halos with their radii), with ``margin`` (a fraction of the
-    image) to spare: the nearest distance at which everything fits, by bisection."""
+    image) to spare: the nearest distance at which everything fits, by bisection.
+
+    ``fovy`` (degrees) is narrower than MuJoCo's default 45, so the camera stands further
+    back and the fronts of the treads do not crowd out their tops; :func:`render_frames`
+    renders with the camera's ``fovy``."""
     model = _as_model(model)
     pts = [_solid_corners(model)]
     if motion is not None:
@@ -342,7 +347,6 @@ def side_camera(model, motion: ReplayMotion | None, width: int, height: int, *,
         raise ValueError("nothing to frame: the model has no boxes and there is no motion")
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     lookat = tuple(float(v) for v in 0.5 * (lo + hi))
-    fovy = float(model.vis.global_.fovy)
 
     def fits(d):
         px = SideCamera(lookat, d, 90.0, elevation, fovy).project(pts, width, height)
@@ -451,7 +455,7 @@ def _add_sphere(scn: mujoco.MjvScene, pos, radius: float, rgba) -> None:
 
 def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int = 360,
                   camera: SideCamera | None = None, ghosts: bool = True, trail: float = 0.3,
-                  caption: bool = True) -> Iterator[np.ndarray]:
+                  caption: bool = True, colours: Mapping | None = None) -> Iterator[np.ndarray]:
     """MuJoCo frames of a replay: ``(height [+ caption], width, 3)`` uint8 RGB arrays.
 
     Each frame places the fitted balls (free-joint ``qpos``, then ``mj_forward``) and adds
@@ -459,14 +463,19 @@ def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int 
     path or a ``mujoco.MjModel`` (not modified). ``camera`` defaults to
     :func:`side_camera`. With ``caption``, a band under the picture gives the time and the
     fitted parameters; the picture itself is the first ``height`` rows either way.
+    ``colours`` maps balls to colours (any matplotlib colour) in place of
+    :func:`ball_colours`.
 
     Raises:
         RenderError: MuJoCo cannot make an offscreen OpenGL context here.
     """
     width, height = int(width), int(height)
-    colours = ball_colours(model, motion.balls)
+    chosen = ball_colours(model, motion.balls)
+    chosen.update({b: _rgb(c) for b, c in (colours or {}).items() if b in chosen})
+    colours = chosen
     model, adr = _prepare(model, motion.balls, width, height, colours)
     camera = camera or side_camera(model, motion, width, height)
+    model.vis.global_.fovy = camera.fovy  # a free camera's field of view is the model's
     data = mujoco.MjData(model)
     try:
         renderer = mujoco.Renderer(model, height, width)
@@ -551,21 +560,39 @@ def _durations_ms(n: int, fps: float) -> list[int]:
     return np.diff(np.concatenate([[0], ends])).tolist()
 
 
-def write_gif(frames: Iterable[np.ndarray], path, fps: float) -> int:
+def _gif_palette(images, colours):
+    """One 256-colour palette for every frame, from a sample of the frames plus shades of
+    the key ``colours``: a small ball covers few pixels, and a palette made per frame
+    would merge its colour into the background's."""
+    from PIL import Image
+
+    sample = [np.asarray(im) for im in images[:: max(1, len(images) // 8)]]
+    h, w = sample[0].shape[:2]
+    for c in colours:
+        shades = np.clip(np.linspace(0.3, 1.2, 16)[:, None] * np.asarray(c, np.float64) * 255, 0, 255)
+        block = np.repeat(shades.astype(np.uint8), -(-w // 16), axis=0)[:w]
+        sample.append(np.broadcast_to(block[None], (max(h // 6, 1), w, 3)))
+    return Image.fromarray(np.concatenate(sample, axis=0)).quantize(256, method=Image.Quantize.MEDIANCUT)
+
+
+def write_gif(frames: Iterable[np.ndarray], path, fps: float, *, colours=()) -> int:
     """Write RGB frames as a looping GIF (Pillow) at ``fps``; returns the number of frames.
 
     GIF durations are hundredths of a second, so a frame rate that does not divide 100
-    gets alternating durations with the right average (see ``_durations_ms``). Pillow
-    merges identical consecutive frames into one (their durations add); replay frames carry
-    their time in the caption, so they never are identical.
+    gets alternating durations with the right average (see ``_durations_ms``). All frames
+    share one palette, which keeps shades of the key ``colours`` (RGB in [0, 1], the
+    balls'). Pillow merges identical consecutive frames into one (their durations add);
+    replay frames carry their time, so they never are identical.
     """
     from PIL import Image
 
     if not (math.isfinite(fps) and 0 < fps <= GIF_MAX_FPS):
         raise ValueError(f"a GIF can show 0 < fps <= {GIF_MAX_FPS:g} frames per second, got {fps!r}")
-    images = [Image.fromarray(np.asarray(f, np.uint8)) for f in frames]
+    images = [Image.fromarray(np.asarray(f, np.uint8)[..., :3]) for f in frames]
     if not images:
         raise ValueError("no frames to write")
+    palette = _gif_palette(images, colours)
+    images = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in images]
     durations = _durations_ms(len(images), fps)
     images[0].save(os.fspath(path), save_all=True, append_images=images[1:],
                    duration=durations if len(images) > 1 else durations[0], loop=0)
@@ -619,11 +646,11 @@ def _chain(first, rest):
     yield from rest
 
 
-def write_video(frames: Iterable[np.ndarray], path, fps: float) -> int:
-    """:func:`write_gif` or :func:`write_mp4`, by the file's suffix."""
+def write_video(frames: Iterable[np.ndarray], path, fps: float, *, colours=()) -> int:
+    """:func:`write_gif` (keeping ``colours``) or :func:`write_mp4`, by the file's suffix."""
     suffix = os.path.splitext(os.fspath(path))[1].lower()
     if suffix == ".gif":
-        return write_gif(frames, path, fps)
+        return write_gif(frames, path, fps, colours=colours)
     if suffix == ".mp4":
         return write_mp4(frames, path, fps)
     raise ValueError(f"{os.fspath(path)}: the output must end in .gif or .mp4")
@@ -685,6 +712,6 @@ def render_replay(scene, fit, tracks, out, *, fps: float = 25.0, width: int = 64
     model = _as_model(scene)
     motion = replay_motion(_estim_scene(scene, model), fit, tracks, fps=fps)
     frames = render_frames(model, motion, width=width, height=height, camera=camera, trail=trail)
-    n = write_video(frames, out, fps)
+    n = write_video(frames, out, fps, colours=list(ball_colours(model, motion.balls).values()))
     return ReplayInfo(os.fspath(out), n, float(fps), float(motion.t[0]), float(motion.t[-1]),
                       motion.balls, "mujoco")

@@ -45,14 +45,16 @@ class SideView:
 
     def __init__(self, scene: Scene, motion: ReplayMotion, width: int = 640, height: int = 360,
                  *, trail: float = 0.3):
-        from ._plots import COLOURS
+        from ._plots import _colour
 
         self.motion, self.trail = motion, trail
         self.width, self.height = int(width), int(height)
         dpi = 100
         self.fig = Figure(figsize=(self.width / dpi, self.height / dpi), dpi=dpi)
         self.canvas = FigureCanvasAgg(self.fig)
-        ax = self.ax = self.fig.add_axes((0.09, 0.13, 0.89, 0.77))
+        # The picture on the left, legend and clock on the right, so that neither ever
+        # covers a ball.
+        ax = self.ax = self.fig.add_axes((0.08, 0.12, 0.62, 0.78))
         lo, hi = self._extent(scene, motion)
         pad = 0.05 * max(hi[0] - lo[0], hi[1] - lo[1])
         xlim, zlim = (lo[0] - pad, hi[0] + pad), (lo[1] - pad, hi[1] + pad)
@@ -67,7 +69,7 @@ class SideView:
         depth = {b: float(np.nanmean(motion.fitted[b][:, 1])) for b in motion.balls}
         order = sorted(motion.balls, key=lambda b: -depth[b])
         for i, b in enumerate(order):
-            c = COLOURS.get(b, f"C{motion.balls.index(b)}")
+            c = _colour(b, motion.balls.index(b))
             r = motion.radius[b]
             z = 3 + 3 * i
             # Moving artists are 'animated': left out of the static background, which is
@@ -79,8 +81,8 @@ class SideView:
             p = motion.params[b]
             self.balls[b] = ax.add_patch(Circle((0, 0), r, facecolor=c, edgecolor="none", zorder=z + 2,
                                                 animated=True,
-                                                label=f"{b}: e={p['e']:.3f}  mu_t={p['mu_t']:.3f}  "
-                                                      f"vx0={p['vx0']:.3f} m/s"))
+                                                label=f"{b}\ne = {p['e']:.3f}, mu_t = {p['mu_t']:.3f}\n"
+                                                      f"vx0 = {p['vx0']:.3f} m/s"))
             self._order = [*getattr(self, "_order", []), b]
         ax.set_xlim(*xlim)
         ax.set_ylim(*zlim)
@@ -89,12 +91,13 @@ class SideView:
         ax.set_ylabel("z [m]", fontsize=8)
         ax.tick_params(labelsize=7)
         handles = [self.balls[b] for b in motion.balls]
-        ax.legend(handles=handles, loc="upper right", fontsize=6.5, framealpha=0.85,
-                  title="fitted (solid)  vs  measured (halo)", title_fontsize=6.5)
-        ax.set_title("Side view (x-z): the fitted model and the measured samples", fontsize=8.5)
-        self.clock = ax.text(0.015, 0.975, "", transform=ax.transAxes, ha="left", va="top",
-                             fontsize=8, animated=True,
-                             bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
+        self.fig.legend(handles=handles, loc="upper left", bbox_to_anchor=(0.72, 0.82),
+                        fontsize=7, frameon=False, labelspacing=1.0,
+                        title="fitted (solid disc)\nmeasured (halo, dots)", title_fontsize=7)
+        ax.set_title("Side view (x-z): the fitted model and the measured samples", fontsize=8.5,
+                     loc="left")
+        self.clock = self.fig.text(0.73, 0.86, "", ha="left", va="bottom", fontsize=9,
+                                   animated=True)
         self._background = None
 
     def _static(self):
@@ -134,7 +137,7 @@ class SideView:
             for artist in (self.trails[b], self.halos[b], self.balls[b]):
                 if artist.get_visible():
                     self.ax.draw_artist(artist)
-        self.ax.draw_artist(self.clock)
+        self.fig.draw_artist(self.clock)
         return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
 
     def frames(self) -> Iterator[np.ndarray]:
@@ -160,6 +163,10 @@ def render_sideview(scene, fit, tracks, out, *, fps: float = 25.0, width: int = 
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     motion = replay_motion(scene, fit, tracks, fps=fps)
     view = SideView(scene, motion, width, height, trail=trail)
-    n = write_video(view.frames(), out, fps)
+    from ._plots import _colour
+    from ._replay import _rgb
+
+    colours = [_rgb(_colour(b, i)) for i, b in enumerate(motion.balls)]
+    n = write_video(view.frames(), out, fps, colours=colours)
     return ReplayInfo(os.fspath(out), n, float(fps), float(motion.t[0]), float(motion.t[-1]),
                       motion.balls, "matplotlib")

@@ -43,6 +43,7 @@ from ._contact import (
     CENTRE,
     HALF,
     REST_SPEED,
+    SOLID,
     Faces,
     ballistic,
     face_entering_time,
@@ -184,7 +185,15 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     lands = on_face(seg.p1 + x_inf, row[CENTRE], row[HALF], faces.radius) & on_face(
         seg.p1 + x_one, row[CENTRE], row[HALF], faces.radius
     )
-    n_train = jnp.where(inclined, jnp.where(lands, jnp.inf, 0.0), n_train)
+    # ... and nothing else in its way: every point of the series lies within
+    # D = |v| T + g T^2 / 2 of its start (T = T0 / (1 - e), its duration), so the cube of
+    # half-side D around the start must not meet another solid's box grown by r (a ball
+    # bouncing on a bevel into a riser beside it is followed bounce by bounce instead).
+    t_total = s.period / jnp.where(inclined, 1.0 - e, 1.0)
+    reach_inc = jnp.sqrt(jnp.sum(post * post)) * t_total + 0.5 * g * t_total**2
+    meets = jnp.all(seg.p1 - reach_inc < faces.hi, axis=1) & jnp.all(seg.p1 + reach_inc > faces.lo, axis=1)
+    clear = ~jnp.any(meets & (jnp.arange(faces.lo.shape[0]) != row[SOLID]))
+    n_train = jnp.where(inclined, jnp.where(lands & clear, jnp.inf, 0.0), n_train)
     # A wall hit while sliding keeps the ball on its face.
     if_support = face_normal(faces, jnp.maximum(d.support, 0))
     stays = (d.kind == SLIDE) & (jnp.abs(jnp.dot(n_face, if_support)) < 1e-12)
