@@ -15,6 +15,8 @@ if _sys.platform.startswith("linux") and not (_os.environ.get("DISPLAY") or _os.
 
 from . import _config  # noqa: E402, F401  (switches on float64 first)
 from ._config import enable_compilation_cache as enable_compilation_cache
+from ._effect_report import EffectReport as EffectReport
+from ._effect_report import effect_sizes as effect_sizes
 from ._effects import Air as Air
 from ._effects import acceleration as acceleration
 from ._effects import air_acceleration as air_acceleration

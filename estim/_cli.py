@@ -1,4 +1,5 @@
-"""The ``estim`` command line: ``simulate``, ``fit``, ``replay``, ``bench speed``, ``demo``."""
+"""The ``estim`` command line: ``simulate``, ``fit``, ``replay``, ``effects``, ``bench speed``,
+``bench fit``, ``bench accuracy``, ``demo``."""
 
 from __future__ import annotations
 
@@ -118,6 +119,55 @@ def build_parser() -> argparse.ArgumentParser:
     fitb.add_argument("--json", action="store_true", help="print one JSON object")
     fitb.add_argument("--repeats", type=_positive_int, default=5, help="steady-state repeats")
     fitb.set_defaults(func=_cmd_bench_fit)
+    accb = bsub.add_parser("accuracy", help="work-precision table and plot of the ODE path",
+                           description="Work-precision study: on the seed scene without air, the "
+                                       "closed form against the ODE path forced with diffrax Tsit5, "
+                                       "Dopri5 and Dopri8 at rtol 1e-3 ... 1e-12 (atol = rtol/10); "
+                                       "in still air (stairs_air.xml), the same against Dopri8 at "
+                                       "rtol 1e-13. Writes accuracy_table.md, accuracy.png and "
+                                       "accuracy.json into --out.")
+    accb.add_argument("--out", default=None,
+                      help="output directory (default: docs/pages of the checkout); an "
+                           "accuracy.md there with the table markers gets the new table")
+    accb.add_argument("--repeats", type=_positive_int, default=None,
+                      help="timing rounds per setting, median reported (default 7; 3 with --quick)")
+    accb.add_argument("--quick", action="store_true",
+                      help="one solver (Tsit5), two tolerances (1e-4, 1e-8), reference Tsit5 at 1e-12")
+    accb.add_argument("--json", action="store_true", help="print the results as one JSON object")
+    accb.set_defaults(func=_cmd_bench_accuracy)
+
+    eff = sub.add_parser("effects", help="how much drag, Magnus and wind change each ball's motion",
+                         description="Effect sizes: simulate the scene's balls (released at their "
+                                     "positions in the scene) in a vacuum and with each effect of "
+                                     "the air alone (still air, quadratic drag, linear drag, Magnus, "
+                                     "wind; and the scene's own air if it has one), and report the "
+                                     "change of final position, bounce times, largest deviation and "
+                                     "bounce counts per ball.")
+    eff.add_argument("--scene", default=None,
+                     help="MJCF scene file (default: data/scenes/stairs.xml)")
+    eff.add_argument("--ball", action="append", default=None,
+                     help="a ball of the scene (repeat for several; default: all)")
+    eff.add_argument("--e", type=_finite, default=None,
+                     help="coefficient of restitution in [0, 1] for every ball (default: the seed "
+                          "value: bocce 0.55, golf 0.70, pingpong 0.85)")
+    eff.add_argument("--mu-t", type=_finite, default=SEED["mu_t"],
+                     help=f"tangential coefficient in [0, 1] (default {SEED['mu_t']})")
+    eff.add_argument("--vx0", type=_finite, default=SEED["velocity"][0],
+                     help=f"release velocity along x (m/s; default {SEED['velocity'][0]})")
+    eff.add_argument("--t-end", type=_finite, default=SEED["t_end"],
+                     help=f"final time (s), > 0 (default {SEED['t_end']})")
+    eff.add_argument("--density", type=_finite, default=None,
+                     help="air density (kg/m^3) of the drag, Magnus and wind runs (default: the "
+                          "scene's, else 1.204, dry air at 20 C)")
+    eff.add_argument("--viscosity", type=_finite, default=None,
+                     help="air viscosity (Pa s) of the linear-drag and wind runs (default: the "
+                          "scene's, else 1.81e-5)")
+    eff.add_argument("--spin", type=_finite, default=50.0,
+                     help="backspin (rad/s; negative: topspin) of the Magnus run (default 50)")
+    eff.add_argument("--wind", type=_finite, default=3.0,
+                     help="wind speed along +x (m/s) of the wind run (default 3)")
+    eff.add_argument("--json", action="store_true", help="print one JSON object")
+    eff.set_defaults(func=_cmd_effects)
 
     demo = sub.add_parser("demo", help="the main job on the bundled data: fit, table, plots",
                           description="Fit the bundled tracks (data/tracks/stairs_demo.csv): "
@@ -343,6 +393,84 @@ def _cmd_bench_fit(args) -> int:
 
     result = run_fit_bench(repeats=args.repeats)
     print(json.dumps(result) if args.json else format_fit_bench(result))
+    return 0
+
+
+def _cmd_bench_accuracy(args) -> int:
+    import os
+
+    from ._bench import default_docs_dir, run_accuracy, write_accuracy
+    from ._job import _progress
+
+    out = args.out or default_docs_dir()
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise UsageError(f"--out {out}: not a directory")
+    repeats = args.repeats or (3 if args.quick else 7)
+    result = run_accuracy(repeats=repeats, quick=args.quick, say=_progress())
+    paths = write_accuracy(result, out)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        from ._bench import format_accuracy
+
+        print(format_accuracy(result))
+    print("wrote " + ", ".join(paths), file=sys.stderr)
+    return 0
+
+
+# --------------------------------------------------------------------------- effects
+
+
+def _cmd_effects(args) -> int:
+    import jax
+    import jax.numpy as jnp
+
+    import estim
+
+    from ._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
+
+    for name, value in (("--e", args.e), ("--mu-t", args.mu_t)):
+        if value is not None and not 0.0 <= value <= 1.0:
+            raise UsageError(f"{name} must lie in [0, 1], got {value}")
+    if not args.t_end > 0:
+        raise UsageError(f"--t-end must be > 0 (seconds), got {args.t_end}")
+    for name, value in (("--density", args.density), ("--viscosity", args.viscosity)):
+        if value is not None and value < 0:
+            raise UsageError(f"{name} must be >= 0, got {value}")
+    scene_path = args.scene or default_scene_path()
+    scene = estim.load_scene(scene_path)
+    if not scene.balls:
+        raise UsageError(f"{scene_path}: the scene defines no balls (spheres on free bodies)")
+    names = list(dict.fromkeys(args.ball)) if args.ball else [b.name for b in scene.balls]
+    rows = []
+    for name in names:
+        scene.ball(name)  # KeyError naming the scene's balls
+        e = args.e if args.e is not None else SEED["e"].get(name)
+        if e is None:
+            raise UsageError(f"--e is required for ball {name!r} (no seed value)")
+        rows.append(estim.Params.for_ball(scene, name, e=e, mu_t=args.mu_t, velocity=(args.vx0, 0.0, 0.0)))
+    params = jax.tree.map(lambda *x: jnp.stack(x), *rows)
+    air = scene.air
+    density = args.density if args.density is not None else (float(air.density) if air is not None else AIR_DENSITY)
+    viscosity = args.viscosity if args.viscosity is not None else (
+        float(air.viscosity) if air is not None else AIR_VISCOSITY)
+    report = effect_sizes(scene, params, args.t_end, names=names, density=density, viscosity=viscosity,
+                          spin=args.spin, wind=args.wind)
+    out = {"scene": scene_path, "params": {"e": [float(x) for x in params.e], "mu_t": args.mu_t,
+                                           "vx0": args.vx0, "t_end": args.t_end}}
+    out.update(report.to_json())
+    if args.json:
+        print(json.dumps(out))
+    else:
+        s = report.settings
+        print(f"effect sizes in {scene_path}, {args.t_end} s, release at the scene's positions, "
+              f"vx0 = {args.vx0} m/s, mu_t = {args.mu_t}")
+        print(f"air: density {s['density']} kg/m^3, viscosity {s['viscosity']} Pa s; Magnus run: "
+              f"{args.spin} rad/s backspin, no drag; wind run: {args.wind} m/s along +x vs still air")
+        print("changes against the vacuum (closed form): final position distance, final x, first and "
+              "second bounce times, largest deviation; bounces: baseline -> with the effect")
+        print()
+        print(report.format_table())
     return 0
 
 

@@ -121,9 +121,11 @@ class EffectReport:
             lines += ["| " + " | ".join(row) + " |" for row in body]
             return "\n".join(lines)
         widths = [max(len(h), *(len(row[i]) for row in body)) for i, h in enumerate(header)]
-        fmt = "  ".join("{:<%d}" % w if i < 2 else "{:>%d}" % w for i, w in enumerate(widths))
-        lines = [fmt.format(*header)]
-        lines += [fmt.format(*row) for row in body]
+        def line(cells):
+            return "  ".join(c.ljust(w) if i < 2 else c.rjust(w)
+                             for i, (c, w) in enumerate(zip(cells, widths, strict=True)))
+
+        lines = [line(header)] + [line(row) for row in body]
         return "\n".join(lines)
 
 
@@ -221,7 +223,8 @@ def effect_sizes(
             velocity 3-vector.
         wind: wind of the wind run: a speed (m/s) along +x, or a 3-vector.
         samples: sample times over ``[0, t_end]`` for the largest deviation.
-        rtol, atol: tolerances of the ODE path.
+        rtol: relative tolerance of the ODE path.
+        atol: absolute tolerance of the ODE path (m, m/s).
 
     Returns:
         An :class:`EffectReport`.
