@@ -23,6 +23,7 @@ from ._effects import air_acceleration as air_acceleration
 from ._fit import BallFit as BallFit
 from ._fit import FitResult as FitResult
 from ._fit import fit as fit
+from ._job import fit_pixels as fit_pixels
 from ._ode import OdeSolution as OdeSolution
 from ._params import Params as Params
 from ._scene import Ball as Ball

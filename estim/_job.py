@@ -83,13 +83,54 @@ def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
 def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
                metres_per_pixel: float | None = None, from_bounce: int = 0,
                pad_to: int | None = None, say=None, **options):
-    """Fit a pixel track (``a;b;`` lines): scale from gravity unless given, surface row
-    from where consecutive flights meet. Returns (result, data, metres_per_pixel, surface_row).
+    """Fit a pixel track from a video tracker (``a;b;`` lines): ``estim fit --pixels``.
 
-    ``from_bounce = k`` fits only the data after the k-th bounce (the state just after it is
-    fitted), leaving out the fastest flights, where air drag matters most. ``pad_to`` pads
-    the samples with masked rows to a fixed length, so tracks of different lengths share
-    one compiled fit.
+    The pixel coordinates ``(a, b)`` of the ball centre (``a`` horizontal, ``b`` the image
+    row, growing downward) become metres with a scale ``s`` (m/px) and the row
+    ``b_s`` of the surface: ``x = s (a - a_0)``, ``z = s (b_s - b) + z_top``, at
+    ``t = frame * frame_interval`` (s), ``z_top`` the top of the scene's highest box or
+    upward plane. Without ``metres_per_pixel`` the scale comes from gravity: each flight is
+    a parabola ``b(t) = b_0 + v t + (g / 2 s) t^2`` in the image, so its curvature ``c``
+    (px/s^2) gives ``s = g / (2 c)`` (:func:`estimate_pixel_scale`; it scales with
+    ``frame_interval**2``). ``b_s`` lies one ball radius below the row where consecutive
+    flight parabolas meet (the ball centre at contact; :func:`estimate_surface_row`).
+    Frames before the release (the ball still in the hand) are skipped, the release time
+    ``t0`` is held at the first fitted sample, and :func:`fit` estimates ``e``, ``mu_t``,
+    ``vx0`` and the release state ``x0``, ``z0``, ``vz0`` (by default; ``free=`` changes
+    them: a drop filmed from the side starts with an unknown vertical speed) in metres and
+    seconds. Convert residuals back to pixels by dividing by the returned scale
+    (``result.balls[ball].rms_m / s``).
+
+    Args:
+        path: the pixel track (one ``a;b;`` line per frame, no header, no time column).
+        scene: a :class:`Scene`, or the path of an MJCF file.
+        ball: the ball of the scene that the track follows (its radius places the surface).
+        frame_interval: seconds per frame (e.g. 0.01 for 100 fps).
+        metres_per_pixel: the scale (m/px) if known; ``None`` estimates it from gravity.
+        from_bounce: ``k > 0`` fits only the data after the k-th bounce (from two frames after
+            it; the state just after it is fitted), leaving out the fastest flights, where
+            air drag matters most. Raises ``ValueError`` if fewer than k bounces are resolved.
+        pad_to: pad the samples with masked rows to this many, so that tracks of different
+            lengths share one compiled fit (``None``: no padding).
+        say: called with progress messages (``None``: silent).
+        **options: passed on to :func:`fit` (``free``, ``loss``, ``restarts``, ...).
+
+    Returns:
+        ``(result, data, metres_per_pixel, surface_row)``: the :class:`FitResult` (in metres
+        and seconds, ``source`` the track's path), the fitted data ``{ball: (t, position)}``
+        in metres (padding rows are NaN), the scale used (m/px) and the image row of the
+        surface (px).
+
+    Raises:
+        ValueError: a track with no resolved flight or bounce to measure the scale or the
+            surface from, fewer bounces than ``from_bounce``, or data that :func:`fit` rejects.
+
+    Example:
+        >>> res, data, s, row = estim.fit_pixels(  # doctest: +SKIP
+        ...     "../shared/realdata/pingpong_drop_nicofighter45/table/tracked-9.txt",
+        ...     "data/scenes/drop.xml", ball="pingpong", frame_interval=0.01, from_bounce=1)
+        >>> res.balls["pingpong"].values["e"], res.balls["pingpong"].rms_m / s  # doctest: +SKIP
+        (0.8247, 1.17)
     """
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     spec = scene.ball(ball)

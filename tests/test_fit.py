@@ -260,7 +260,7 @@ def _table_files():
 def test_real_table_drops():
     """e per table file with the pixel pipeline (every file padded to 400 samples: one
     compile). The authors found e = 0.821 +- 0.007; only a broad range is asserted."""
-    from estim._job import fit_pixels
+    from estim import fit_pixels
 
     rows = []
     for f in _table_files():
