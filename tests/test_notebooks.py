@@ -16,6 +16,7 @@ which the notebooks switch on, makes later runs faster).
 from __future__ import annotations
 
 import json
+import math
 import os
 import pathlib
 import subprocess
@@ -26,6 +27,7 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NOTEBOOKS = ROOT / "notebooks"
 REALDATA = ROOT.parent / "shared" / "realdata" / "pingpong_drop_nicofighter45"
+ACCURACY_JSON = ROOT / "docs" / "pages" / "accuracy.json"  # the committed full study, if any
 
 
 def run_notebook(name: str, out: pathlib.Path) -> subprocess.CompletedProcess:
@@ -53,7 +55,8 @@ def test_notebooks_are_marimo_apps():
     """Every notebook is a valid marimo app (``marimo check --strict``: parseable cells,
     no variable defined in two cells, no cycles), openable with ``marimo edit``."""
     names = sorted(p.name for p in NOTEBOOKS.glob("[0-9][0-9]_*.py"))
-    assert names[:3] == ["01_three_balls.py", "02_fit_video_tracks.py", "03_gradient_sanity.py"]
+    assert names[:5] == ["01_three_balls.py", "02_fit_video_tracks.py", "03_gradient_sanity.py",
+                         "04_accuracy_cost.py", "05_effects.py"]
     proc = subprocess.run([sys.executable, "-m", "marimo", "check", "--strict", *names],
                           cwd=NOTEBOOKS, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -100,3 +103,70 @@ def test_03_gradient_sanity(tmp_path):
     assert s["event_times_autodiff_vs_implicit"] < 1e-12
     assert s["frozen_dxfinal_de_error"] == pytest.approx(-0.19213914, abs=1e-7)
     assert s["grazing_slope"] == pytest.approx(-0.5, abs=1e-3)
+
+
+@pytest.mark.slow
+def test_04_accuracy_cost(tmp_path):
+    proc = run_notebook("04_accuracy_cost.py", tmp_path)
+    committed = ACCURACY_JSON.is_file()
+    expected = ["04_accuracy_live.png", "04_steps_error.png", "04_accuracy_live.json", "04_accuracy_cost.json"]
+    expected += ["04_accuracy_committed.png"] if committed else []
+    assert_files(tmp_path, expected)
+    s = summary(proc, tmp_path, "04_accuracy_cost")
+    assert s["committed"]["present"] == committed
+    if committed:
+        assert "error" not in s["committed"], s["committed"]
+    else:
+        assert "Committed study not found" in proc.stdout
+    # (a) Vacuum: the closed form's seed numbers (9 / 6 / 4 events, the seed gradient of
+    # notebook 3), and the ODE path agrees with it to rounding, at a cost.
+    assert s["vacuum_events"] == [9, 6, 4]
+    assert s["closed_form_gradient"] == pytest.approx([0.19213914, 6.81524982, 2.17816532], abs=5e-8)
+    assert s["vacuum_max_error"] < 1e-9
+    assert s["vacuum_forward_ratio"][1] > 2
+    # (b) Still air: the default is within a micrometre of the tight reference, with its
+    # events; the step count never grows as rtol loosens, and stops falling at loose rtol.
+    default, ref = s["air_default"], s["air_reference"]
+    assert default["final_position_error"] < 1e-6 and default["event_time_error"] < 1e-6
+    assert default["events"] == ref["events"] and ref["complete"]
+    steps = s["tsit5_steps_by_rtol"]  # loosest first
+    assert list(steps.values()) == sorted(steps.values())
+    assert steps["1e-03"] == steps["1e-04"]
+    assert s["steps_plateau_rtol"] <= 1e-4
+    slack_steps = list(s["slack_steps"].values())  # loosest slack first
+    assert slack_steps == sorted(slack_steps) and slack_steps[0] < slack_steps[-1]
+
+
+@pytest.mark.slow
+def test_05_effects(tmp_path):
+    proc = run_notebook("05_effects.py", tmp_path)
+    assert_files(tmp_path, ["05_drag_heights.png", "05_drop_delay.png", "05_magnus.png", "05_effects.json"])
+    s = summary(proc, tmp_path, "05_effects")
+    # The vacuum is the closed form: the seed's bounces; it never traced the ODE solver, and
+    # every air run of the notebook shared one ODE program.
+    assert s["vacuum_bounces"] == {"bocce": 9, "golf": 6, "pingpong": 4, "regulation pingpong": 4}
+    assert s["ode_traces"] == {"after_vacuum": 0, "after_first_air": 1, "total": 1}
+    # The vertical drop from rest through H with quadratic drag only, against the closed form
+    # t = (v_t / g) arccosh(exp(g H / v_t^2)), v_t = sqrt(2 m g / (rho C_D pi r^2)).
+    rho, cd, g, h = 1.204, 0.47, 9.81, s["drop_height"]
+    balls = {"bocce": (0.08, 0.92), "golf": (0.05, 0.046), "pingpong": (0.04, 0.005),
+             "regulation pingpong": (0.02, 0.0027)}
+    for name, (r, m) in balls.items():
+        vt = math.sqrt(2 * m * g / (rho * cd * math.pi * r**2))
+        t = vt / g * math.acosh(math.exp(g * h / vt**2))
+        assert s["drop_t"][name] == pytest.approx(t, rel=1e-7), name
+        assert s["k_per_m"][name] == pytest.approx(g / vt**2, rel=1e-12)
+    # Drag delays the ping-pong ball's first bounce on the stairs ~46 times as much as the
+    # bocce ball's: the ratio of their drag constants k, to first order.
+    k_ratio = s["k_per_m"]["pingpong"] / s["k_per_m"]["bocce"]
+    assert k_ratio == pytest.approx(46.0, abs=0.1)
+    assert s["stairs_delay_ratio_pingpong_bocce"] == pytest.approx(k_ratio, rel=0.1)
+    assert s["stairs_bounce1_delay_ms"]["bocce"] > 0
+    # Backspin lifts (a later first bounce), topspin dips.
+    mag = s["magnus"]
+    assert mag["pingpong backspin"]["bounce1_ms"] > 0 > mag["pingpong topspin"]["bounce1_ms"]
+    assert mag["bocce backspin"]["bounce1_ms"] > 0 > mag["bocce topspin"]["bounce1_ms"]
+    # Linear (Stokes) drag is far smaller than quadratic drag for every ball.
+    effects = {e["effect"]: e["balls"] for e in s["effect_report"]["effects"]}
+    for name in balls:
+        assert 0 < effects["linear drag"][name]["bounce1_ms"] < 0.05 * effects["quadratic drag"][name]["bounce1_ms"]
