@@ -387,6 +387,7 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
     import estim
 
     say = say or (lambda msg: None)
+    solvers_arg, rtols_arg, reference_arg, slacks_arg = solvers, rtols, reference, slacks
     solvers = tuple(solvers or (QUICK_SOLVERS if quick else ACCURACY_SOLVERS))
     rtols = tuple(rtols or (QUICK_RTOLS if quick else ACCURACY_RTOLS))
     reference = tuple(reference or (QUICK_REFERENCE if quick else ACCURACY_REFERENCE))
@@ -443,7 +444,10 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
         return out
 
     scenes_dir = os.path.dirname(default_scene_path())
+    custom = any(x is not None for x in (solvers_arg, rtols_arg, reference_arg, slacks_arg))
+    command = "estim bench accuracy" + (" --quick" if quick else "")
     result = {"repeats": int(repeats), "quick": bool(quick), "t_end": float(t_end),
+              "command": f"estim._bench.run_accuracy(...) (custom settings, quick={quick})" if custom else command,
               "balls": list(SEED["e"]), "atol_ratio": ATOL_RATIO, "default": dict(DEFAULT_SETTING)}
 
     # (a) Vacuum: the closed form against the ODE path forced on.
@@ -561,8 +565,10 @@ def format_accuracy(r: dict) -> str:
     if air.get("settings_rows"):
         out += [
             "",
-            "**(c) Around the default** (still air, Tsit5, rtol 1e-8, atol 1e-9): the contact slack "
-            "and the step budget `max_steps`, against the same reference.",
+            "**(c) Around the default** (still air, Tsit5, rtol 1e-8, atol 1e-9): the contact slack"
+            + (" and the step budget `max_steps`" if any(x["max_steps"] != DEFAULT_SETTING["max_steps"]
+                                                          for x in air["settings_rows"]) else "")
+            + ", against the same reference.",
             "",
             "| contact_slack (m) | max_steps | event times (s) | final position (m) | gradient | forward (ms) "
             "| × default | gradient (ms) | steps | complete |",
@@ -584,7 +590,7 @@ def format_accuracy(r: dict) -> str:
                 + (" †: the event counts differ from the reference's (" + "; ".join(
                     f"{x['solver']} rtol {x['rtol']:.0e}: {x['events']}" for x in mismatched) + ")." if mismatched else ""),
             "",
-            f"Measured with `estim bench accuracy{' --quick' if r['quick'] else ''}` on {m['cpu_count']} CPU cores "
+            f"Measured with `{r.get('command') or 'estim bench accuracy' + (' --quick' if r['quick'] else '')}` on {m['cpu_count']} CPU cores "
             f"({m['processor']}, {m['platform']}), jax {m['jax']} ({m['backend']})"
             + (f", load average {m['load_average'][0]:.1f} at the end" if m.get("load_average") else "") + "."]
     return "\n".join(out)
