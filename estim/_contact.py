@@ -181,24 +181,36 @@ def first_contact(
     """
     normal, offset = faces.row[:, NORMAL], faces.row[:, OFFSET]
     centre, half = faces.row[:, CENTRE], faces.row[:, HALF]
-    g2 = normal @ a
-    tau = entering_time(normal @ p - offset, normal @ v, g2)
+    tau = entering_time(normal @ p - offset, normal @ v, normal @ a)
     finite = jnp.isfinite(tau)
-    q, w = ballistic(p, v, a, jnp.where(finite, tau, 0.0)[:, None])
+    q, _ = ballistic(p, v, a, jnp.where(finite, tau, 0.0)[:, None])
     ok = finite & on_face(q, centre, half, faces.radius)
-    # Guards of the lower-rank faces bordering face f, at the contact point of face f.
-    j = jnp.maximum(faces.lower, 0)
-    nj = normal[j]
-    gj0 = jnp.sum(nj * q[:, None, :], axis=-1) - offset[j]
-    gj1 = jnp.sum(nj * w[:, None, :], axis=-1)
-    touches = (faces.lower >= 0) & (jnp.abs(gj0) <= POSITION_TOL)
-    enters = (gj1 < -SPEED_TOL) | ((jnp.abs(gj1) <= SPEED_TOL) & (g2[j] < 0))
-    ok = ok & ~jnp.any(touches & ~enters, axis=1)
     ok = ok & (jnp.arange(tau.shape[0]) != exclude)
     tau = jnp.where(ok, tau, jnp.inf)
-    t_min = jnp.min(tau)
-    near = tau <= t_min + 1e-12
-    face = jnp.argmin(jnp.where(near, faces.rank, 99)).astype(jnp.int32)
+
+    def earliest(tau):
+        t_min = jnp.min(tau)
+        near = tau <= t_min + 1e-12
+        return t_min, jnp.argmin(jnp.where(near, faces.rank, 99)).astype(jnp.int32)
+
+    def blocked(face, t):
+        """The ball touches a lower-rank face bordering ``face`` at its contact point
+        without entering it."""
+        lower = faces.lower[face]
+        nj = normal[jnp.maximum(lower, 0)]
+        qf, wf = ballistic(p, v, a, jnp.where(jnp.isfinite(t), t, 0.0))
+        gj0 = nj @ qf - offset[jnp.maximum(lower, 0)]
+        gj1, gj2 = nj @ wf, nj @ a
+        touches = (lower >= 0) & (jnp.abs(gj0) <= POSITION_TOL)
+        enters = (gj1 < -SPEED_TOL) | ((jnp.abs(gj1) <= SPEED_TOL) & (gj2 < 0))
+        return jnp.isfinite(t) & jnp.any(touches & ~enters)
+
+    # A blocked candidate is dropped and the next earliest taken: at a corner of a box at
+    # most three (two bevels and the corner face) can be blocked at once.
+    for _ in range(3):
+        t_min, face = earliest(tau)
+        tau = jnp.where((jnp.arange(tau.shape[0]) == face) & blocked(face, t_min), jnp.inf, tau)
+    t_min, face = earliest(tau)
     return t_min, jnp.where(jnp.isfinite(t_min), face, -1)
 
 
@@ -284,6 +296,17 @@ def train_reach(faces: Faces, face, p, u, height):
     exit_face = jnp.where(moving, jnp.min(to_edge), inf)
     reach = jnp.minimum(obstacle, exit_face)
     return jnp.where(obstacle <= POSITION_TOL, -1.0, jnp.maximum(reach, 0.0))
+
+
+def series_clear(faces: Faces, face, p, v, duration, gravity):
+    """Whether a bounce series on face ``face`` that starts at p with velocity v and lasts
+    ``duration`` provably meets no other solid: every point of it lies within
+    ``D = |v| T + g T^2 / 2`` of p (T the duration), so the cube of half-side D around p
+    must not meet another solid's box grown by r. Conservative; for a series on an inclined
+    face (an edge bevel), where the slab test of ``train_reach`` does not apply."""
+    d = jnp.sqrt(jnp.sum(v * v)) * duration + 0.5 * gravity * duration**2
+    meets = jnp.all(p - d < faces.hi, axis=1) & jnp.all(p + d > faces.lo, axis=1)
+    return ~jnp.any(meets & (jnp.arange(faces.lo.shape[0]) != faces.row[face, SOLID]))
 
 
 def geometric_sum(q, n):

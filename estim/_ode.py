@@ -23,10 +23,14 @@ found without ever stepping over one:
 Zeno series carry over: after a bounce on a face that supports the ball, if the rest of the
 bounce series (gravity only) lasts less than ``sqrt(2 SLACK / |a_air|)`` (so neglecting the
 air over it moves the ball by less than ``SLACK``), lands on the same face and meets no
-other solid, it is summed in closed form (``estim._train``) and the ball rests or slides
-on the face (with the air acting along it); it flies again when it slides off an edge. In
-a vacuum (the ODE path forced on a gravity-only scene) every such series is summed, as in
-the closed-form solver. Events and compute stay bounded by ``max_steps``.
+other solid (the slab test ``train_reach`` on an upward face, the box test
+``series_clear`` on an inclined one), it is summed in closed form (``estim._train``) and
+the ball rests or slides on the face (with the air acting along it); it flies again when
+it slides off an edge. A series still bouncing at ``t_end`` (always so for e = 1) is summed
+up to ``t_end`` under the same conditions. In a vacuum (the ODE path forced on a
+gravity-only scene) every such series is summed, as in the closed-form solver, and its
+bounces are listed as events as there (those whose flight lasts at least 1 us, then a
+settle event). Events and compute stay bounded by ``max_steps``.
 
 Gradients: as in ``estim._solver``, a ``plan`` pass (``lax.while_loop``, no gradients)
 finds the discrete structure and the accepted step sizes; a ``replay`` pass (``lax.scan``)
@@ -55,14 +59,16 @@ from ._contact import (
     face_normal,
     faces_for,
     first_contact,
+    geometric_count,
     on_face,
+    series_clear,
     slide_exit_time,
     train_reach,
 )
 from ._effects import acceleration
 from ._solver import contact_velocity
-from ._train import series, series_end, state_at
-from ._trajectory import IMPACT, REST, AbstractSolution, Events, State
+from ._train import bounce, series, series_end, state_at
+from ._trajectory import IMPACT, LISTED_FLIGHT, REST, AbstractSolution, Events, State
 
 # Step kinds.
 PLAIN, LAST, CONTACT, EXIT, ZENO, UNUSED = 0, 1, 2, 3, 4, 5
@@ -195,38 +201,70 @@ def _event_time(settings, f, t, y, args, n, big_h, tau0):
     return tau, jnp.abs(g(tau)[0])
 
 
-def _zeno(faces: Faces, gravity, air, params, face, p, v, slack):
+def _zeno(faces: Faces, gravity, air, params, face, p, v, slack, t_left, cut=None):
     """Whether the bounce series that starts at (p, v) on ``face`` is summed in closed form
-    (see the module docstring), and its duration, displacement and final velocity."""
+    (see the module docstring), whether it is cut at ``t_end`` (``t_left`` after p), and
+    its duration, displacement and final velocity. ``cut`` given (replay): as plan decided.
+
+    A series that does not accumulate before ``t_end`` (e = 1 never does) is summed up to
+    ``t_end``: bounce j starts at ``T0 (1 - e^j) / (1 - e)`` (``estim._train``), so the
+    state at ``t_left`` is that of the flight in progress then, in closed form, as on the
+    closed-form path. Stepping it bounce by bounce instead costs a step per bounce (an
+    e = 1 ball with a 0.2 us period would need 10^7) and lets rounding accumulate in the
+    bounce points (1.8e-12 m after 1,000 bounces of an e = 1 ball)."""
     e, mu_t = params.e, params.mu_t
     g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
     f = jnp.maximum(face, 0)
     n = face_normal(faces, f)
     w = jnp.dot(v, n)
-    supports = (jnp.dot(n, g_vec) < 0) & (face >= 0) & (w > 0) & (e < 1)
+    supports = (jnp.dot(n, g_vec) < 0) & (face >= 0) & (w > 0)
     n_s = jnp.where(supports, n, jnp.array([0.0, 0.0, 1.0]))
     s = series(jnp.where(supports, v, n_s), n_s, g_vec)
-    duration, travel, v_full = series_end(s, jnp.inf, e, mu_t)
-    ok = supports & jnp.isfinite(duration) & _zeno_allowed(
+    if cut is None:  # e = 1: duration inf, always cut
+        full = jax.lax.stop_gradient(series_end(s, jnp.inf, e, mu_t)[0])
+        cut = ~(full < jax.lax.stop_gradient(t_left))
+    # The whole series only where it is not cut: at e = 1 its duration is T0 * inf, whose
+    # derivative (inf) turns the zero cotangent of a discarded branch into NaN in reverse
+    # mode; n = 1 is harmless there.
+    duration, travel, v_full = series_end(s, jnp.where(cut, 1.0, jnp.inf), e, mu_t)
+    t_safe = jnp.where(cut, t_left, 0.0)
+    x_cut, v_cut = state_at(s, t_safe, e, mu_t, jnp.inf)
+    duration = jnp.where(cut, t_left, jnp.where(jnp.isfinite(duration), duration, 0.0))
+    travel = jnp.where(cut, x_cut, travel)
+    v_end = jnp.where(cut, v_cut, v_full)
+    ok = supports & _zeno_allowed(
         *jax.lax.stop_gradient((faces, gravity, air, params, f, n, p, v, w, s, duration, travel, slack))
     )
-    return (ok, jnp.where(ok, duration, 0.0), jnp.where(ok, travel, 0.0),
-            jnp.where(ok, v_full, v))
+    return (ok, cut, jnp.where(ok, duration, 0.0), jnp.where(ok, travel, 0.0),
+            jnp.where(ok, v_end, v))
 
 
 def _zeno_allowed(faces, gravity, air, params, f, n, p, v, w, s, duration, travel, slack):
     """The decision of ``_zeno`` (no gradients): the series lands on its face, meets no
     other solid, and is short enough to neglect the air over it."""
-    _, x_one, _ = series_end(s, 1.0, params.e, params.mu_t)
+    e, mu_t = params.e, params.mu_t
+    _, x_one, _ = series_end(s, 1.0, e, mu_t)
+    # Where the series lands: its first bounce, its last (before t_end, or the accumulation
+    # point), and the ball's place over the face at the end (a cut series ends in flight:
+    # its tangential displacement). On an upward face the landing points move monotonically
+    # along u, so these bound them all; on an inclined face this is the closed form's check
+    # too (``estim._solver``).
+    j_last = jnp.minimum(geometric_count(e, duration / s.period), 2.0**52)
+    _, x_last, _ = series_end(s, j_last, e, mu_t)
+    along = travel - jnp.dot(travel, s.normal) * s.normal
     row = faces.row[f]
-    lands = on_face(p + travel, row[CENTRE], row[HALF], faces.radius) & on_face(
-        p + x_one, row[CENTRE], row[HALF], faces.radius
-    )
-    # Nothing in the way of a series on an upward face (the slab test of the closed form).
+    lands = (on_face(p + along, row[CENTRE], row[HALF], faces.radius)
+             & on_face(p + x_one, row[CENTRE], row[HALF], faces.radius)
+             & on_face(p + x_last, row[CENTRE], row[HALF], faces.radius))
+    # Nothing in the way: on an upward face the slab test of the closed form; on an
+    # inclined face (an edge bevel, which may face a riser across a gap) the box test of
+    # the closed form (``series_clear``): without it a series on a bevel was summed
+    # straight into the riser beside it (the wedged ball of tests/test_hard_cases.py).
     up = n[2] > 1.0 - 1e-12
     u = v.at[2].set(0.0)
     reach = train_reach(faces, f, p, u, w * w / (2.0 * gravity))
-    clear = jnp.where(up, jnp.linalg.norm(travel[:2]) <= reach, True)
+    clear = jnp.where(up, jnp.linalg.norm(along[:2]) <= reach,
+                      series_clear(faces, f, p, v, duration, gravity))
     g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
     a_air = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v) - g_vec
     air_scale = jnp.linalg.norm(a_air)
@@ -270,8 +308,8 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         a0 = f(y, args)[3:]
 
         # A Zeno series closed in one piece.
-        zeno_ok, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, pending, p, v, settings.slack)
-        zeno_ok = zeno_ok & (t + z_dur < t_end)
+        zeno_ok, z_cut, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, pending, p, v,
+                                                       settings.slack, t_end - t)
 
         # The next event on the step's parabola.
         h_try = jnp.minimum(h, t_end - t)
@@ -308,7 +346,8 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         rec = Step(
             kind.astype(jnp.int32), mode, support,
             jnp.where(zeno_ok, pending, jnp.where(event, ev_face, -1)).astype(jnp.int32),
-            bound, jnp.where(zeno_ok, 0.0, h_step),
+            # A ZENO step records in ``bound`` whether the series was cut at t_end (1).
+            jnp.where(zeno_ok, z_cut.astype(jnp.int32), bound), jnp.where(zeno_ok, 0.0, h_step),
         )
         steps = jax.tree.map(lambda b, x: jnp.where(keep, b.at[k].set(x), b), steps, rec)
 
@@ -338,7 +377,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
             jnp.where(keep, new_support, support).astype(jnp.int32),
             jnp.where(keep, new_pending, pending).astype(jnp.int32),
             jnp.where(keep, h_new, h_rej),
-            keep & (kind == LAST),
+            keep & ((kind == LAST) | (zeno_ok & z_cut)),
             steps,
         )
 
@@ -380,7 +419,8 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings) -> Node:
         a1 = f(y1, args)[3:]
         # A Zeno series summed in closed form.
         zeno = st.kind == ZENO
-        _, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, jnp.where(zeno, st.face, -1), p, v, settings.slack)
+        _, _, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, jnp.where(zeno, st.face, -1), p, v,
+                                             settings.slack, t_end - t, cut=zeno & (st.bound == 1))
         t1 = jnp.where(zeno, t + z_dur, t + h)
         p1 = jnp.where(zeno, p + z_travel, p1)
         v1 = jnp.where(zeno, z_vel, v1)
@@ -482,26 +522,64 @@ class OdeSolution(AbstractSolution):
         return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
 
 
-def list_events(nodes: Node, steps: Step, max_events: int) -> Events:
-    """The contact events of one ball: every CONTACT step, and the end of every summed
-    Zeno series (a settle event, ``REST``)."""
-    is_event = (steps.kind == CONTACT) | (steps.kind == ZENO)
-    (idx,) = jnp.nonzero(is_event, size=max_events, fill_value=0)
-    total = jnp.sum(is_event)
-    valid = jnp.arange(max_events) < total
-    nd = jax.tree.map(lambda x: x[idx], nodes)
-    st = jax.tree.map(lambda x: x[idx], steps)
-    settle = (st.kind == ZENO) | (jnp.linalg.norm(nd.v1 - nd.v1_post, axis=1) <= REST_SPEED)
-    zero = jnp.zeros_like(nd.p1)
+def list_events(nodes: Node, steps: Step, normals, e, mu_t, g, max_events: int) -> Events:
+    """The contact events of one ball, as on the closed-form path (``estim._trajectory``):
+    every CONTACT step; for a summed series (ZENO) its bounces whose flight lasts at least
+    ``LISTED_FLIGHT`` (all of them before ``t_end`` for e = 1), each from the closed form
+    of ``estim._train``, then a settle event (``REST``) where it accumulates (none for a
+    series cut at ``t_end``)."""
+    zeno = steps.kind == ZENO
+    contact = steps.kind == CONTACT
+    cut = zeno & (steps.bound == 1)
+    normal = normals[jnp.maximum(steps.face, 0)]
+    # The first flight of a series lasts T0 = 2 w / |a_n| and flight j, T0 e^j.
+    w = jnp.where(zeno, jnp.sum(nodes.v0 * normal, axis=1), 1.0)
+    a_n = jnp.where(zeno, normal[:, 2], 1.0) * -g
+    t_flight = jnp.where(zeno & (w > 0), 2.0 * w / -a_n, 1.0)
+    before_end = geometric_count(e, (nodes.t1 - nodes.t0) / t_flight)
+    le = jnp.log(jnp.where((e > 0) & (e < 1), e, 0.5))
+    listable = jnp.where(t_flight >= LISTED_FLIGHT, jnp.floor(jnp.log(LISTED_FLIGHT / t_flight) / le) + 1.0, 0.0)
+    listable = jnp.where((e > 0) & (e < 1), listable, jnp.where(e == 0, 0.0, jnp.inf))
+    bounces = jnp.where(zeno, jnp.minimum(before_end, listable), 0.0)
+    total = jnp.where(contact, 1.0, bounces + (zeno & ~cut))
+    # Slots are int32 indices; a count past max_events only marks the list truncated.
+    capped = jnp.minimum(total, max_events + 1.0)
+    ends = jnp.cumsum(capped)
+    i = jnp.arange(max_events, dtype=jnp.float64)
+    k = jnp.clip(jnp.searchsorted(ends, i, side="right"), 0, ends.shape[0] - 1)
+    valid = i < ends[-1]
+    j = i - (ends - capped)[k] + 1.0  # bounce number within a series, from 1
+    in_series = zeno[k] & (j <= bounces[k])
+    nd = jax.tree.map(lambda x: x[k], nodes)
+    st = jax.tree.map(lambda x: x[k], steps)
+    a = jnp.array([0.0, 0.0, -1.0]) * g
+
+    def one_bounce(v0, n, jj):
+        ok = jnp.dot(v0, n) > 0
+        n = jnp.where(ok, n, jnp.array([0.0, 0.0, 1.0]))
+        t_b, x_b, pre_b, post_b, _ = bounce(series(jnp.where(ok, v0, n), n, a), jj, e, mu_t)
+        return t_b, x_b, pre_b, post_b
+
+    # Inputs of the unused branch are kept harmless (no NaN to poison derivatives).
+    n_k = jnp.where(in_series[:, None], normal[k], jnp.array([0.0, 0.0, 1.0]))
+    v_k = jnp.where(in_series[:, None], nd.v0, n_k)
+    t_b, x_b, pre_b, post_b = jax.vmap(one_bounce)(v_k, n_k, jnp.where(in_series, j, 1.0))
+    t = jnp.where(in_series, nd.t0 + t_b, nd.t1)
+    pos = jnp.where(in_series[:, None], nd.p0 + x_b, nd.p1)
+    pre = jnp.where(in_series[:, None], pre_b, nd.v1)
+    post = jnp.where(in_series[:, None], post_b, nd.v1_post)
+    # A contact without normal speed is a landing to rest, not an impact.
+    settle = (zeno[k] & ~in_series) | (~zeno[k] & (jnp.linalg.norm(pre - post, axis=1) <= REST_SPEED))
+    zero = jnp.zeros_like(pos)
     return Events(
-        t=jnp.where(valid, nd.t1, jnp.inf),
-        position=jnp.where(valid[:, None], nd.p1, zero),
-        velocity_pre=jnp.where(valid[:, None], nd.v1, zero),
-        velocity_post=jnp.where(valid[:, None], nd.v1_post, zero),
+        t=jnp.where(valid, t, jnp.inf),
+        position=jnp.where(valid[:, None], pos, zero),
+        velocity_pre=jnp.where(valid[:, None], pre, zero),
+        velocity_post=jnp.where(valid[:, None], post, zero),
         face=jnp.where(valid, st.face, -1).astype(jnp.int32),
         kind=jnp.where(valid, jnp.where(settle, REST, IMPACT), -1).astype(jnp.int32),
-        count=jnp.minimum(total, max_events).astype(jnp.int32),
-        truncated=total > max_events,
+        count=jnp.minimum(ends[-1], max_events).astype(jnp.int32),
+        truncated=ends[-1] > max_events,
     )
 
 
@@ -512,7 +590,7 @@ def solve_one(scene, params, t_end, ts, settings: OdeSettings, max_events: int):
     faces = faces_for(scene, params.radius)
     normals = faces.row[:, NORMAL]
     pos, vel = sample(nodes, pl.steps, lambda f: normals[f], params.e, params.mu_t, scene.gravity, ts)
-    events = list_events(nodes, pl.steps, max_events)
+    events = list_events(nodes, pl.steps, normals, params.e, params.mu_t, scene.gravity, max_events)
     last = jnp.maximum(pl.n_steps - 1, 0)
     final = State(t_end, nodes.p1[last], nodes.v1_post[last])
     return pos, vel, events, final, nodes, pl.steps, normals, pl.complete

@@ -43,7 +43,6 @@ from ._contact import (
     CENTRE,
     HALF,
     REST_SPEED,
-    SOLID,
     Faces,
     ballistic,
     face_entering_time,
@@ -53,6 +52,7 @@ from ._contact import (
     geometric_count,
     on_face,
     reset,
+    series_clear,
     slide_exit_time,
     train_reach,
 )
@@ -140,8 +140,12 @@ def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segme
     n_sup = jnp.where(is_train, face_normal(faces, jnp.maximum(d.support, 0)), up)
     s = series(jnp.where(is_train, v, up), n_sup, a)  # a finite series off-branch: no NaN cotangents
     n_tr = jnp.where(is_train, d.n, 1.0)
-    duration, travel, v_full = series_end(s, n_tr, e, mu_t)
     at_end = d.reason == END
+    # The end of the whole series is used only when it ends before t_end; a series cut at
+    # t_end may be one that never ends (e = 1, n = inf: duration T0 * inf, whose derivative
+    # w.r.t. T0 is inf and turned the discarded branch's zero cotangent into NaN in
+    # reverse mode), so it is evaluated at a harmless n = 1 there.
+    duration, travel, v_full = series_end(s, jnp.where(at_end, 1.0, n_tr), e, mu_t)
     tau_t = jnp.where(at_end, t_end - t, jnp.where(jnp.isfinite(duration), duration, 0.0))
     tr_travel, tr_vel = state_at(s, tau_t, e, mu_t, n_tr)
     p_tr = p + jnp.where(at_end, tr_travel, travel)
@@ -185,14 +189,10 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     lands = on_face(seg.p1 + x_inf, row[CENTRE], row[HALF], faces.radius) & on_face(
         seg.p1 + x_one, row[CENTRE], row[HALF], faces.radius
     )
-    # ... and nothing else in its way: every point of the series lies within
-    # D = |v| T + g T^2 / 2 of its start (T = T0 / (1 - e), its duration), so the cube of
-    # half-side D around the start must not meet another solid's box grown by r (a ball
-    # bouncing on a bevel into a riser beside it is followed bounce by bounce instead).
+    # ... and nothing else in its way (a ball bouncing on a bevel into a riser beside it is
+    # followed bounce by bounce instead).
     t_total = s.period / jnp.where(inclined, 1.0 - e, 1.0)
-    reach_inc = jnp.sqrt(jnp.sum(post * post)) * t_total + 0.5 * g * t_total**2
-    meets = jnp.all(seg.p1 - reach_inc < faces.hi, axis=1) & jnp.all(seg.p1 + reach_inc > faces.lo, axis=1)
-    clear = ~jnp.any(meets & (jnp.arange(faces.lo.shape[0]) != row[SOLID]))
+    clear = series_clear(faces, face, seg.p1, post, t_total, g)
     n_train = jnp.where(inclined, jnp.where(lands & clear, jnp.inf, 0.0), n_train)
     # A wall hit while sliding keeps the ball on its face.
     if_support = face_normal(faces, jnp.maximum(d.support, 0))
