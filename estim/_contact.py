@@ -43,6 +43,12 @@ from ._scene import Scene
 # within POSITION_TOL and a normal speed below SPEED_TOL counts as zero.
 POSITION_TOL = 1e-12
 SPEED_TOL = 1e-12
+# Likewise a normal acceleration below ACCEL_TOL (m/s^2) counts as zero. Accelerations are
+# of order g ~ 10, so rounding leaves ~1e-15 in one that is zero exactly: a ball sliding
+# on a bevel along its ridge with a corner face (the slide acceleration lies in both
+# planes) got G2 = -1.2e-15 for the corner face, so it "entered" that face at tau = 0, and
+# from there the bevel, and so on, switching faces forever at one instant.
+ACCEL_TOL = 1e-12
 # A bounce whose post-impact normal speed is below REST_SPEED ends the bounce series: the
 # remaining flights would last less than 2 REST_SPEED / g ~ 2e-10 s in all.
 REST_SPEED = 1e-9
@@ -127,6 +133,13 @@ def _lower_faces(face_solid, face_direction, n_boxes) -> np.ndarray:
     return out
 
 
+def moves_into(g1, g2):
+    """Whether a ball touching a plane (G = 0) moves into it: its normal speed G1 is
+    negative, or zero with a negative normal acceleration G2 (each to within its
+    tolerance, so that rounding never makes a ball moving along a plane enter it)."""
+    return (g1 < -SPEED_TOL) | ((jnp.abs(g1) <= SPEED_TOL) & (g2 < -ACCEL_TOL))
+
+
 def entering_time(
     g0: Float[Array, "*f"], g1: Float[Array, "*f"], g2: Float[Array, "*f"]
 ) -> Float[Array, "*f"]:
@@ -136,7 +149,11 @@ def entering_time(
     ``inf`` when it never enters. Uses equation (2) of the module docstring.
     """
     touching = jnp.abs(g0) <= POSITION_TOL
-    pushed = (g1 < -SPEED_TOL) | ((jnp.abs(g1) <= SPEED_TOL) & (g2 < 0))
+    pushed = moves_into(g1, g2)
+    # A ball touching the plane with no normal speed nor acceleration (to rounding) moves
+    # along it: G is zero exactly, and a root of its rounded coefficients (g0 ~ 1e-16 over
+    # g2 ~ -1e-15 puts one ~1 s ahead) is no contact.
+    along = touching & (jnp.abs(g1) <= SPEED_TOL) & (jnp.abs(g2) <= ACCEL_TOL)
     disc = g1 * g1 - 2.0 * g2 * g0
     has_root = disc > 0
     s = jnp.sqrt(jnp.where(has_root, disc, 1.0))
@@ -146,7 +163,7 @@ def entering_time(
     den_b = jnp.where(neg | (g2 == 0), -1.0, g2)
     tau = jnp.where(neg, 2.0 * g0 / den_a, (-g1 - s) / den_b)
     future = has_root & (tau > 0) & (neg | (g2 < 0))
-    return jnp.where(touching & pushed, 0.0, jnp.where(future, tau, jnp.inf))
+    return jnp.where(touching & pushed, 0.0, jnp.where(future & ~along, tau, jnp.inf))
 
 
 def ballistic(p, v, a, tau):
@@ -202,7 +219,7 @@ def first_contact(
         gj0 = nj @ qf - offset[jnp.maximum(lower, 0)]
         gj1, gj2 = nj @ wf, nj @ a
         touches = (lower >= 0) & (jnp.abs(gj0) <= POSITION_TOL)
-        enters = (gj1 < -SPEED_TOL) | ((jnp.abs(gj1) <= SPEED_TOL) & (gj2 < 0))
+        enters = moves_into(gj1, gj2)
         return jnp.isfinite(t) & jnp.any(touches & ~enters)
 
     # A blocked candidate is dropped and the next earliest taken: at a corner of a box at

@@ -55,6 +55,7 @@ from ._contact import (
     NORMAL,
     OFFSET,
     REST_SPEED,
+    SPEED_TOL,
     Faces,
     face_normal,
     faces_for,
@@ -194,7 +195,7 @@ def _event_time(settings, f, t, y, args, n, big_h, tau0):
 
     def body(_, tau):
         val, slope = g(tau)
-        safe = jnp.abs(slope) > 1e-12
+        safe = jnp.abs(slope) > SPEED_TOL
         return jnp.maximum(tau - jnp.where(safe, val / jnp.where(safe, slope, 1.0), 0.0), 0.0)
 
     tau = jax.lax.fori_loop(0, NEWTON_ITERATIONS, body, tau0)
@@ -408,8 +409,13 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings) -> Node:
             return jnp.dot(n_g, y1[:3]) - h_g
 
         gval, gslope = jax.jvp(guard, (tau_star,), (jnp.ones_like(tau_star),))
-        gslope = jnp.where(is_event & (jnp.abs(gslope) > 0), gslope, 1.0)
-        tau_event = tau_star - jnp.where(is_event, gval / gslope, 0.0)
+        # No Newton step where the guard is flat (|G'| <= SPEED_TOL, as in plan's
+        # ``_event_time``): an event entered at second order (zero normal speed, tau = 0)
+        # has G' ~ 1e-15 from rounding, and dividing by it threw the ball ~1e15 m away
+        # (then to NaN) where plan had not moved it.
+        newton = is_event & (jnp.abs(gslope) > SPEED_TOL)
+        gslope = jnp.where(newton, gslope, 1.0)
+        tau_event = tau_star - jnp.where(newton, gval / gslope, 0.0)
         h = jnp.select([st.kind == PLAIN, st.kind == LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
         y1, _ = _rk_step(settings, f, t, h, y, args)
         p1, v1 = y1[:3], y1[3:]
