@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from ._demo import SEED, default_scene_path
+from ._demo import SEED, default_scene_path, seed_params
 
 __all__ = ["run_speed", "format_speed", "run_fit_bench", "format_fit_bench", "TARGETS", "REFERENCE",
            "run_accuracy", "format_accuracy", "write_accuracy"]
@@ -105,11 +105,7 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
 
     scene = estim.load_scene(scene_path)
     t_end = SEED["t_end"]
-    balls = [b for b in scene.balls if b.name in SEED["e"]]
-    three = estim.Params(
-        [SEED["e"][b.name] for b in balls], [SEED["mu_t"]] * len(balls),
-        [b.radius for b in balls], [b.position for b in balls], [SEED["velocity"]] * len(balls),
-    )
+    three = seed_params(scene)
 
     # Forward: 3 balls in one batched call. Jitted wrapper (what a user's jitted code
     # pays) and the plain call (adds estim's eager argument checks).
@@ -291,22 +287,6 @@ def default_docs_dir() -> str:
     return str(pages) if pages.is_dir() else os.path.join("docs", "pages")
 
 
-def _seed_three(scene):
-    """The seed's three balls (batch of 3, masses from the scene): x0 = -0.20 m, y as in
-    the scene, z0 = 1.40 + r + 0.25 m, velocity (1.15, 0, 0) m/s."""
-    import jax
-    import jax.numpy as jnp
-
-    import estim
-
-    rows = []
-    for name, e in SEED["e"].items():
-        b = scene.ball(name)
-        rows.append(estim.Params.for_ball(scene, name, e=e, mu_t=SEED["mu_t"], velocity=SEED["velocity"],
-                                          position=(-0.20, b.position[1], 1.40 + b.radius + 0.25)))
-    return jax.tree.map(lambda *x: jnp.stack(x), *rows)
-
-
 def _programs(scene, params, t_end, ts):
     """The compiled programs of the study for one scene and its three balls: forward
     (three balls) and the reverse-mode gradient of the golf ball's final x w.r.t. (e,
@@ -452,7 +432,7 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
 
     # (a) Vacuum: the closed form against the ODE path forced on.
     vacuum = estim.load_scene(os.path.join(scenes_dir, "stairs.xml"))
-    programs = _programs(vacuum, _seed_three(vacuum), t_end, ts)
+    programs = _programs(vacuum, seed_params(vacuum), t_end, ts)
     runs = {("closed form", None): measure(programs, None, "vacuum, closed form")}
     for solver in solvers:
         for rtol in rtols:
@@ -469,7 +449,7 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
 
     # (b) Still air: the solvers against a high-precision reference.
     air = estim.load_scene(os.path.join(scenes_dir, "stairs_air.xml"))
-    programs = _programs(air, _seed_three(air), t_end, ts)
+    programs = _programs(air, seed_params(air), t_end, ts)
     ref = measure(programs, _settings(*reference), f"air, reference {reference[0]} rtol {reference[1]:g}")
     runs = {}
     for solver in solvers:

@@ -8,7 +8,7 @@ import json
 import math
 import sys
 
-from ._demo import SEED, default_scene_path
+from ._demo import SEED, default_scene_path, seed_params
 
 __all__ = ["main"]
 
@@ -422,9 +422,6 @@ def _cmd_bench_accuracy(args) -> int:
 
 
 def _cmd_effects(args) -> int:
-    import jax
-    import jax.numpy as jnp
-
     import estim
 
     from ._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
@@ -442,14 +439,7 @@ def _cmd_effects(args) -> int:
     if not scene.balls:
         raise UsageError(f"{scene_path}: the scene defines no balls (spheres on free bodies)")
     names = list(dict.fromkeys(args.ball)) if args.ball else [b.name for b in scene.balls]
-    rows = []
-    for name in names:
-        scene.ball(name)  # KeyError naming the scene's balls
-        e = args.e if args.e is not None else SEED["e"].get(name)
-        if e is None:
-            raise UsageError(f"--e is required for ball {name!r} (no seed value)")
-        rows.append(estim.Params.for_ball(scene, name, e=e, mu_t=args.mu_t, velocity=(args.vx0, 0.0, 0.0)))
-    params = jax.tree.map(lambda *x: jnp.stack(x), *rows)
+    params = seed_params(scene, names, e=args.e, mu_t=args.mu_t, velocity=(args.vx0, 0.0, 0.0))
     air = scene.air
     density = args.density if args.density is not None else (float(air.density) if air is not None else AIR_DENSITY)
     viscosity = args.viscosity if args.viscosity is not None else (

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["DEMO_TRACKS", "SEED", "SEED_SCENE", "run_demo", "format_summary"]
+__all__ = ["DEMO_TRACKS", "SEED", "SEED_SCENE", "run_demo", "format_summary", "seed_params"]
 
 SEED_SCENE = Path(__file__).resolve().parent.parent / "data" / "scenes" / "stairs.xml"
 DEMO_TRACKS = Path(__file__).resolve().parent.parent / "data" / "tracks" / "stairs_demo.csv"
@@ -30,6 +30,31 @@ def default_scene_path() -> str:
     if SEED_SCENE.is_file():
         return str(SEED_SCENE)
     return os.path.join("data", "scenes", "stairs.xml")
+
+
+def seed_params(scene, names=None, *, e=None, mu_t=SEED["mu_t"], velocity=SEED["velocity"]):
+    """The seed experiment's balls of ``scene`` as one batch of ``Params``.
+
+    Each ball is released at its position in the scene file, with its mass, the seed's
+    restitution (``SEED["e"]``, or ``e`` for every ball), ``mu_t`` and ``velocity``.
+    ``names`` defaults to the scene's balls that the seed names, in scene order. A ball the
+    scene lacks is a KeyError naming the scene's balls; one without a seed e and no ``e``
+    given, a ValueError.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from ._params import Params
+
+    names = list(names) if names is not None else [b.name for b in scene.balls if b.name in SEED["e"]]
+    rows = []
+    for name in names:
+        scene.ball(name)
+        e_ball = e if e is not None else SEED["e"].get(name)
+        if e_ball is None:
+            raise ValueError(f"no seed restitution for ball {name!r}: give e (--e)")
+        rows.append(Params.for_ball(scene, name, e=e_ball, mu_t=mu_t, velocity=velocity))
+    return jax.tree.map(lambda *x: jnp.stack(x), *rows)
 
 
 def run_demo(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None = None,

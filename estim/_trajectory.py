@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -56,9 +58,9 @@ class AbstractSolution(eqx.Module):
 
     gravity: eqx.AbstractVar[Float[Array, ""]]
 
+    @abc.abstractmethod
     def evaluate(self, t: Float[Array, "*times"]) -> tuple[Array, Array]:
         """Position and velocity at times ``t`` (any shape), for every ball."""
-        raise NotImplementedError
 
 
 class ClosedFormSolution(AbstractSolution):

@@ -16,33 +16,17 @@ app = marimo.App()
 @app.cell
 def _():
     import json
-    import os
-    import pathlib
     import re
     import time
 
     import marimo as mo
-    import matplotlib
-
-    matplotlib.use("Agg")  # headless: figures are written to files, never shown in windows
     import matplotlib.pyplot as plt
     import numpy as np
+    from _common import FAST, OUT, ROOT, md_table  # notebooks/_common.py
 
     import estim
 
-    _here = mo.notebook_dir()
-    ROOT = pathlib.Path(_here).resolve().parent if _here else pathlib.Path.cwd()
-    OUT = pathlib.Path(os.environ.get("ESTIM_NOTEBOOK_OUT") or ROOT / "notebooks" / "out")
-    OUT.mkdir(parents=True, exist_ok=True)
-    FAST = os.environ.get("ESTIM_NOTEBOOK_FAST") == "1"
-    estim.enable_compilation_cache()  # later runs skip most of JAX's compile time
     START = time.perf_counter()
-
-    def md_table(header, rows):
-        """A markdown table (its own ``mo.md``: tables must not be indented)."""
-        lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-        lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-        return mo.md("\n".join(lines))
     return FAST, OUT, ROOT, START, estim, json, md_table, mo, np, plt, re, time
 
 

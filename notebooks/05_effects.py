@@ -16,37 +16,22 @@ app = marimo.App()
 @app.cell
 def _():
     import json
-    import os
-    import pathlib
     import statistics
     import time
 
-    import marimo as mo
-    import matplotlib
-
-    matplotlib.use("Agg")  # headless: figures are written to files, never shown in windows
     import jax
     import jax.numpy as jnp
+    import marimo as mo
     import numpy as np
+    from _common import OUT, ROOT, md_table  # notebooks/_common.py
     from matplotlib.figure import Figure
 
     import estim
     import estim._ode as estim_ode  # only for TRACE_COUNT: how often the ODE solver was traced
     from estim._plots import COLOURS  # the colours of estim's plots and replays
 
-    _here = mo.notebook_dir()
-    ROOT = pathlib.Path(_here).resolve().parent if _here else pathlib.Path.cwd()
-    OUT = pathlib.Path(os.environ.get("ESTIM_NOTEBOOK_OUT") or ROOT / "notebooks" / "out")
-    OUT.mkdir(parents=True, exist_ok=True)
-    estim.enable_compilation_cache()  # later runs skip most of JAX's compile time
     START = time.perf_counter()
     TRACES_AT_START = estim_ode.TRACE_COUNT
-
-    def md_table(header, rows):
-        """A markdown table (its own ``mo.md``: tables must not be indented)."""
-        lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-        lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-        return mo.md("\n".join(lines))
 
     def median_s(fn, repeats):
         """Median wall time (s) of ``fn()`` over ``repeats`` calls (after one warm-up)."""

@@ -66,7 +66,7 @@ def simulate(scene, params, t_end, path, **kw) -> estim.Trajectory:
         import diffrax
 
         return estim.simulate(scene, params, t_end, solver=diffrax.Tsit5(), **kw)
-    raise NotImplementedError(f"solver path {path!r}: add its call to simulate() here")
+    raise ValueError(f"unknown solver path {path!r} (PATHS: {PATHS})")
 
 
 @functools.partial(jax.jit, static_argnames="path")
