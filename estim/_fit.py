@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import require_x64
+from ._config import FIT_COMPILE, jit, require_x64
 from ._initial import Initial, initial_guess
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
@@ -78,23 +78,42 @@ def _index(free):
     return np.array([PARAMETERS.index(n) for n in free])
 
 
+def _xp(x):
+    """The array namespace of x: jax.numpy inside the fit's program, numpy in the driver
+    (host-side arithmetic on a few numbers, which eager JAX would compile op by op)."""
+    return jnp if isinstance(x, jax.Array) else np
+
+
+def _sigmoid(x, xp):
+    if xp is jnp:
+        return jax.nn.sigmoid(x)
+    with np.errstate(over="ignore"):
+        return 1.0 / (1.0 + np.exp(-x))
+
+
 def _to_physical(theta, free, fixed):
-    values = [jax.nn.sigmoid(theta[i]) if n in _BOUNDED else jnp.exp(theta[i]) if n in _POSITIVE
+    xp = _xp(theta)
+    values = [_sigmoid(theta[i], xp) if n in _BOUNDED else xp.exp(theta[i]) if n in _POSITIVE
               else theta[i] for i, n in enumerate(free)]
+    if xp is np:
+        out = np.array(fixed, dtype=np.float64)
+        out[_index(free)] = values
+        return out
     return fixed.at[_index(free)].set(jnp.stack(values))
 
 
 def _to_theta(phi, free):
+    xp = _xp(phi)
     out = []
     for n in free:
         v = phi[PARAMETERS.index(n)]
         if n in _BOUNDED:
-            v = jnp.clip(v, 1e-6, 1 - 1e-6)
-            v = jnp.log(v) - jnp.log1p(-v)
+            v = xp.clip(v, 1e-6, 1 - 1e-6)
+            v = xp.log(v) - xp.log1p(-v)
         elif n in _POSITIVE:
-            v = jnp.log(jnp.maximum(v, 1e-6))
+            v = xp.log(xp.maximum(v, 1e-6))
         out.append(v)
-    return jnp.stack(out)
+    return xp.stack(out)
 
 
 # The ODE path's settings in a fit (scenes with air): the defaults of estim.simulate, with a
@@ -118,7 +137,10 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, max_segments: int):
     pl = plan(scene, params, t_end, max_segments)
     segs = segments_of(scene, params, t_end, pl.decisions, pl.segments)
     pos, _ = sample(segs, pl.decisions, e, mu_t, scene.gravity, ts)
-    return pos, list_events(segs, pl.decisions, e, mu_t, scene.gravity, 64), ts
+    # The events only count impacts (a report, not differentiated): listed from the plan's
+    # values, they stay out of the Jacobian's forward-mode trace.
+    e_, mu_ = jax.lax.stop_gradient((e, mu_t))
+    return pos, list_events(pl.segments, pl.decisions, e_, mu_, scene.gravity, 64), ts
 
 
 def _residuals(scene, phi, problem, max_segments):
@@ -130,40 +152,28 @@ def _residuals(scene, phi, problem, max_segments):
     return r, (valid.reshape(-1), pos, impacts)
 
 
-def _fit_one(scene, free, loss, steps, max_segments, theta0, problem):
-    """Levenberg-Marquardt on the robust loss for one ball.
-
-    Returns the best point, the loss history, and the residuals, Jacobian (with respect to
-    theta), validity mask, model positions and impact count at the best point.
-    """
+def _lm_step(scene, free, loss, max_segments, carry, problem):
+    """One Levenberg-Marquardt iteration for one ball: residuals and Jacobian at theta
+    (forward mode, one simulation), keep the best point seen, step."""
+    theta, state, best = carry
 
     def evaluate(theta):
         r, aux = _residuals(scene, _to_physical(theta, free, problem.fixed), problem, max_segments)
         return r, (r, aux)
 
-    opt = levenberg_marquardt()
-
-    def step(carry, _):
-        theta, state, best = carry
-        J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
-        u = r / problem.scale
-        value = jnp.sum(robust_loss(u, loss))
-        value = jnp.where(jnp.all(jnp.isfinite(J)), value, jnp.inf)
-        improved = value < state.best_value
-        best = jax.tree.map(lambda new, old: jnp.where(improved, new, old), (r, J, aux), best)
-        updates, state = opt.update(
-            None, state, theta, jacobian=J, residuals=r, weights=robust_weight(u, loss), value=value
-        )
-        return (theta + updates, state, best), jnp.minimum(value, state.best_value)
-
-    m = problem.obs.size  # residuals per ball; shapes written out to avoid a second trace
-    best = (
-        jnp.zeros(m),
-        jnp.zeros((m,) + theta0.shape),
-        (jnp.zeros(m, bool), jnp.zeros(problem.obs.shape), jnp.zeros((), jnp.int32)),
+    J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
+    u = r / problem.scale
+    value = jnp.sum(robust_loss(u, loss))
+    value = jnp.where(jnp.all(jnp.isfinite(J)), value, jnp.inf)
+    improved = value < state.best_value
+    best = jax.tree.map(lambda new, old: jnp.where(improved, new, old), (r, J, aux), best)
+    updates, state = _LM.update(
+        None, state, theta, jacobian=J, residuals=r, weights=robust_weight(u, loss), value=value
     )
-    (_, state, best), history = jax.lax.scan(step, (theta0, opt.init(theta0), best), None, length=steps)
-    return state.best_params, history, best
+    return (theta + updates, state, best), jnp.minimum(value, state.best_value)
+
+
+_LM = levenberg_marquardt()
 
 
 @dataclass
@@ -304,30 +314,30 @@ def fit(
         pad = n_max - len(t)
         mask = np.isfinite(pos)
         problems.append(_Problem(
-            t=jnp.asarray(np.concatenate([t, np.full(pad, t[-1])])),
-            obs=jnp.asarray(np.concatenate([np.nan_to_num(pos), np.zeros((pad, 3))])),
-            mask=jnp.asarray(np.concatenate([mask, np.zeros((pad, 3), bool)])),
-            radius=jnp.asarray(spec.radius),
-            mass=jnp.asarray(spec.mass),
-            fixed=jnp.asarray(phi),
-            scale=jnp.asarray(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3, dtype=jnp.float64),
+            t=np.concatenate([t, np.full(pad, t[-1])]),
+            obs=np.concatenate([np.nan_to_num(pos), np.zeros((pad, 3))]),
+            mask=np.concatenate([mask, np.zeros((pad, 3), bool)]),
+            radius=np.float64(spec.radius),
+            mass=np.float64(spec.mass),
+            fixed=phi,
+            scale=np.float64(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3),
         ))
-        starts.append(np.asarray(_to_theta(jnp.asarray(phi), free)))
+        starts.append(_to_theta(phi, free))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
             f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
-    batch = jax.tree.map(lambda *xs: jnp.stack(xs), *problems)
+    batch = jax.tree.map(lambda *xs: np.stack(xs), *problems)
     noises = [float(p.scale) for p in problems]  # read from the data, before any rescaling
     def run(theta, problems):
-        return _run(scene, tuple(free), loss, steps, max_segments, theta, problems)
+        return jax.device_get(_run(scene, tuple(free), loss, steps, max_segments, theta, problems))
 
     # Growing window: first up to the third resolved bounce, then everything.
     windows = []
     for init in inits:
         windows.append(init.bounces[2] + 0.05 if len(init.bounces) >= 3 else np.inf)
-    theta = jnp.asarray(np.stack(starts))
+    theta = np.stack(starts)
     if np.any(np.isfinite(windows)):
         say("fitting the first bounces")
-        early = eqx.tree_at(lambda p: p.mask, batch, batch.mask & (batch.t <= jnp.asarray(windows)[:, None])[..., None])
+        early = eqx.tree_at(lambda p: p.mask, batch, batch.mask & (batch.t <= np.asarray(windows)[:, None])[..., None])
         theta, _, diag = run(theta, early)
         # The robust scale: the noise read from the data, or the spread of the residuals of
         # the early fit if larger (a model that misses some physics must not turn every
@@ -338,12 +348,12 @@ def fit(
             rv = r[valid]
             mad = 1.4826 * np.median(np.abs(rv - np.median(rv))) if rv.size else 0.0
             scales.append(max(float(pr.scale), float(mad)))
-        problems = [eqx.tree_at(lambda p: p.scale, pr, jnp.asarray(s, dtype=jnp.float64)) for pr, s in zip(problems, scales, strict=True)]
-        batch = eqx.tree_at(lambda p: p.scale, batch, jnp.asarray(scales, dtype=jnp.float64))
+        problems = [eqx.tree_at(lambda p: p.scale, pr, np.float64(s)) for pr, s in zip(problems, scales, strict=True)]
+        batch = eqx.tree_at(lambda p: p.scale, batch, np.asarray(scales, dtype=np.float64))
     say("fitting all data")
     theta, history, diag = run(theta, batch)
     floors = [_at_floor(diag, i, problems[i], noises[i]) for i in range(len(names))]
-    best_theta, best_diag, best_hist = theta, diag, history
+    best_theta, best_diag, best_hist = jax.tree.map(np.array, (theta, diag, history))  # writable copies
     # Multi-start for balls above the noise floor: e from a grid across its range (the
     # basin of the right e can be narrow where bounces land near tread edges or a series
     # goes Zeno), mu_t and vx0 from the data-driven start, slightly perturbed.
@@ -356,7 +366,7 @@ def fit(
         trial = np.asarray(best_theta).copy()
         for i, ok in enumerate(floors):
             if not ok:
-                phi = np.array(_to_physical(jnp.asarray(starts[i]), free, problems[i].fixed))
+                phi = _to_physical(starts[i], free, problems[i].fixed)
                 if "e" in free:
                     phi[0] = grid[attempt]
                 for n, spread in (("mu_t", 0.02), ("vx0", 0.03)):
@@ -364,13 +374,13 @@ def fit(
                         k = PARAMETERS.index(n)
                         phi[k] = phi[k] + spread * rng.uniform(-1, 1)
                 phi[:2] = np.clip(phi[:2], 0.02, 0.995)
-                trial[i] = np.asarray(_to_theta(jnp.asarray(phi), free))
-        theta_t, hist_t, diag_t = run(jnp.asarray(trial), batch)
+                trial[i] = _to_theta(phi, free)
+        theta_t, hist_t, diag_t = run(trial, batch)
         for i in range(len(names)):
             if _objective(diag_t, i, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
-                best_theta = best_theta.at[i].set(theta_t[i])
-                best_hist = best_hist.at[i].set(hist_t[i])
-                best_diag = jax.tree.map(lambda x, y, i=i: x.at[i].set(y[i]), best_diag, diag_t)
+                best_theta[i], best_hist[i] = theta_t[i], hist_t[i]
+                for x, y in zip(jax.tree.leaves(best_diag), jax.tree.leaves(diag_t), strict=True):
+                    x[i] = y[i]
         floors = [_at_floor(best_diag, i, problems[i], noises[i]) for i in range(len(names))]
     results = {}
     for i, b in enumerate(names):
@@ -459,7 +469,7 @@ def _check_inputs(scene, data, fixed) -> None:
 
 def _objective(diag, i, loss, problem):
     r, _, (valid, _, _) = diag
-    return float(jnp.sum(jnp.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
+    return float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
 
 
 def _inliers(diag, i, problem):
@@ -481,21 +491,37 @@ def _at_floor(diag, i, problem, noise) -> bool:
     return rms <= 1.3 * noise
 
 
-@eqx.filter_jit
+@jit(options=FIT_COMPILE)
 def _run(scene, free, loss, steps, max_segments, theta, batch):
-    fn = lambda th, pr: _fit_one(scene, free, loss, steps, max_segments, th, pr)  # noqa: E731
-    return jax.vmap(fn)(theta, batch)
+    """Levenberg-Marquardt on the robust loss, every ball at once: ``steps`` iterations.
+
+    Returns the best point per ball, the loss histories ``(balls, steps)``, and the
+    residuals, Jacobian (with respect to theta), validity mask, model positions and impact
+    count at the best point. The balls are a batch inside each iteration (the scan over
+    iterations is not itself batched, which keeps tracing to one pass over its body).
+    """
+    m = batch.obs[0].size  # residuals per ball
+    n_balls, n_theta = theta.shape
+    best = (
+        jnp.zeros((n_balls, m)),
+        jnp.zeros((n_balls, m, n_theta)),
+        (jnp.zeros((n_balls, m), bool), jnp.zeros(batch.obs.shape), jnp.zeros(n_balls, jnp.int32)),
+    )
+    carry = (theta, jax.vmap(_LM.init)(theta), best)
+    step = jax.vmap(lambda c, pr: _lm_step(scene, free, loss, max_segments, c, pr))
+    (_, state, best), history = jax.lax.scan(lambda c, _: step(c, batch), carry, None, length=steps)
+    return state.best_params, history.T, best
 
 
 def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, noise) -> BallFit:
     r, J, (_, pos, impacts) = jax.tree.map(lambda a: np.asarray(a[i]), diag)
-    phi = np.asarray(_to_physical(jnp.asarray(theta), free, problem.fixed))
+    phi = _to_physical(np.asarray(theta), free, problem.fixed)
     # Jacobian with respect to the physical parameters: d theta / d phi per column.
     dphi = np.array([phi[PARAMETERS.index(n)] * (1 - phi[PARAMETERS.index(n)]) if n in _BOUNDED
                      else phi[PARAMETERS.index(n)] if n in _POSITIVE else 1.0 for n in free])
     at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range
     J = np.where(at_bound[None, :], 0.0, J / np.where(at_bound, 1.0, dphi)[None, :])
-    w = np.asarray(robust_weight(jnp.asarray(r) / problem.scale, loss))
+    w = robust_weight(r / problem.scale, loss)
     r_all, valid_np, keep = _inliers(diag, i, problem)
     n_obs = int(np.asarray(problem.mask).any(axis=1).sum())
     rms = math.sqrt(np.mean(r_all[keep] ** 2)) if keep.any() else math.nan

@@ -17,7 +17,9 @@ solves a weighted least-squares problem with weights ``w(u) = rho'(u) / u``.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = ["ROBUST_LOSSES", "robust_loss", "robust_weight"]
 
@@ -26,25 +28,31 @@ _HUBER_C = 1.345
 _CAUCHY_C = 2.385
 
 
+def _xp(u):
+    return jnp if isinstance(u, jax.Array) else np  # numpy in, numpy out
+
+
 def robust_loss(u, kind: str):
     """rho(u) for standardised residuals u = r / s."""
+    xp = _xp(u)
     if kind == "l2":
         return 0.5 * u * u
     if kind == "huber":
-        a = jnp.abs(u)
-        return jnp.where(a <= _HUBER_C, 0.5 * u * u, _HUBER_C * a - 0.5 * _HUBER_C**2)
+        a = xp.abs(u)
+        return xp.where(a <= _HUBER_C, 0.5 * u * u, _HUBER_C * a - 0.5 * _HUBER_C**2)
     if kind == "cauchy":
-        return 0.5 * _CAUCHY_C**2 * jnp.log1p((u / _CAUCHY_C) ** 2)
+        return 0.5 * _CAUCHY_C**2 * xp.log1p((u / _CAUCHY_C) ** 2)
     raise ValueError(f"unknown robust loss {kind!r}; choose one of {ROBUST_LOSSES}")
 
 
 def robust_weight(u, kind: str):
     """IRLS weight rho'(u) / u."""
+    xp = _xp(u)
     if kind == "l2":
-        return jnp.ones_like(u)
+        return xp.ones_like(u)
     if kind == "huber":
-        a = jnp.abs(u)
-        return jnp.where(a <= _HUBER_C, 1.0, _HUBER_C / jnp.maximum(a, _HUBER_C))
+        a = xp.abs(u)
+        return xp.where(a <= _HUBER_C, 1.0, _HUBER_C / xp.maximum(a, _HUBER_C))
     if kind == "cauchy":
         return 1.0 / (1.0 + (u / _CAUCHY_C) ** 2)
     raise ValueError(f"unknown robust loss {kind!r}; choose one of {ROBUST_LOSSES}")

@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from . import _ode
-from ._config import require_x64
+from ._config import jit, require_x64
 from ._ode import OdeSettings
 from ._params import Params, check_runtime, check_t_end
 from ._scene import Scene
@@ -160,7 +160,7 @@ def _flat_params(params: Params) -> Params:
     )
 
 
-@eqx.filter_jit
+@jit
 def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks):
     _ode.TRACE_COUNT += 1
     batch = params.batch_shape
@@ -200,7 +200,7 @@ def _check_effects(scene: Scene, params: Params) -> None:
             )
 
 
-@eqx.filter_jit
+@jit
 def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     batch = params.batch_shape
     if checks:

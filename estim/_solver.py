@@ -258,8 +258,12 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
     faces, g = faces_for(scene, params.radius), scene.gravity
     S = max_segments
-    t0 = jnp.zeros_like(params.e)
-    d0 = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.asarray(0.0), jnp.int32(END), jnp.int32(-1))
+    # Every carried value depends on the ball from the start (a zero times e, which the
+    # checks keep finite): under vmap the loop's carry is then batched as it enters, and
+    # JAX batches the body once instead of iterating to a fixed point (seconds of tracing).
+    t0 = 0.0 * params.e
+    i0 = t0.astype(jnp.int32)
+    d0 = Decision(i0 + UNUSED, i0 - 1, t0, i0 + END, i0 - 1)
     s0 = advance(faces, g, params, t0, params.position, params.velocity, d0, t_end)
     buffers = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), (d0, s0))
     init = (
@@ -267,10 +271,10 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
         t0,
         params.position,
         params.velocity,
-        jnp.int32(FLIGHT),
-        jnp.int32(-1),
-        jnp.asarray(0.0),
-        jnp.bool_(False),
+        i0 + FLIGHT,
+        i0 - 1,
+        t0,
+        i0 > 0,
         buffers,
     )
 
@@ -308,7 +312,10 @@ def replay(scene: Scene, params, t_end, decisions: Decision) -> Segment:
         seg = advance(faces, scene.gravity, params, t, p, v, d, t_end)
         return (seg.t1, seg.p1, seg.v1_post), seg
 
-    init = (jnp.zeros_like(params.e), params.position, params.velocity)
+    # t starts as 0 * e, not a constant: its tangent and batch axis are then those of the
+    # rest of the carry from the start, and JAX traces the scan's body once, not to a
+    # fixed point (seconds of tracing inside a fit's jacfwd and vmap).
+    init = (0.0 * params.e, params.position, params.velocity)
     _, segments = jax.lax.scan(step, init, decisions)
     return segments
 
