@@ -135,7 +135,7 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, max_segments: int):
         pos, _, events, *_ = solve_one(scene, params, t_end, ts, settings, 64)
         return pos, events, ts
     pl = plan(scene, params, t_end, max_segments)
-    segs = segments_of(scene, params, t_end, pl.decisions, pl.segments)
+    segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, pl.n_segments)
     pos, _ = sample(segs, pl.decisions, e, mu_t, scene.gravity, ts)
     # The events only count impacts (a report, not differentiated): listed from the plan's
     # values, they stay out of the Jacobian's forward-mode trace.

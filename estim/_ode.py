@@ -67,6 +67,7 @@ from ._contact import (
     train_reach,
 )
 from ._effects import acceleration
+from ._scan import scan_used
 from ._solver import contact_velocity
 from ._train import bounce, series, series_end, state_at
 from ._trajectory import IMPACT, LISTED_FLIGHT, REST, AbstractSolution, Events, State
@@ -386,8 +387,9 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
     return Plan(steps=steps, n_steps=k, complete=done)
 
 
-def replay(scene, params, t_end, steps: Step, settings: OdeSettings) -> Node:
-    """Recompute every accepted step differentiably (``lax.scan``)."""
+def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None) -> Node:
+    """Recompute every accepted step differentiably (a ``lax.scan`` that runs only the
+    first ``n_used`` steps, default all: ``estim._scan``)."""
     faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
     f = _vector_field(air, g, params)
     g_vec = jnp.array([0.0, 0.0, -1.0]) * g
@@ -434,8 +436,18 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings) -> Node:
         node = Node(t, p, v, jnp.where(zeno, g_vec, a0), t1, p1, v1, jnp.where(zeno, g_vec, a1), v_post)
         return (t1, jnp.concatenate([p1, v_post])), node
 
-    init = (jnp.zeros_like(params.e), jnp.concatenate([params.position, params.velocity]))
-    _, nodes = jax.lax.scan(apply, init, steps)
+    def idle(carry):
+        """What ``apply`` gives for an UNUSED slot: a step of length 0."""
+        t, y = carry
+        a = f(y, (jnp.zeros(3), jnp.bool_(False)))[3:]
+        return Node(t, y[:3], y[3:], a, t, y[:3], y[3:], a, y[3:])
+
+    # 0 * e, not a constant, for a single trace of the body (see estim._solver.replay).
+    init = (0.0 * params.e, jnp.concatenate([params.position, params.velocity]))
+    none = jnp.int32(-1)
+    unused = Step(jnp.int32(UNUSED), jnp.int32(FLY), none, none, jnp.int32(0), jnp.float64(0.0))
+    n_used = steps.kind.shape[0] if n_used is None else n_used
+    _, nodes = scan_used(apply, init, steps, n_used, idle, unused)
     return nodes
 
 
@@ -592,7 +604,13 @@ def list_events(nodes: Node, steps: Step, normals, e, mu_t, g, max_events: int) 
 def solve_one(scene, params, t_end, ts, settings: OdeSettings, max_events: int):
     """Plan, replay, sample and list events for one ball."""
     pl = plan(scene, params, t_end, settings)
-    nodes = replay(scene, params, t_end, pl.steps, settings)
+    return finish(scene, params, t_end, ts, settings, max_events, pl, pl.n_steps)
+
+
+def finish(scene, params, t_end, ts, settings: OdeSettings, max_events: int, pl: Plan, n_used):
+    """Replay (the first ``n_used`` steps, at least ``pl.n_steps``), sample and list events
+    for one ball."""
+    nodes = replay(scene, params, t_end, pl.steps, settings, n_used)
     faces = faces_for(scene, params.radius)
     normals = faces.row[:, NORMAL]
     pos, vel = sample(nodes, pl.steps, lambda f: normals[f], params.e, params.mu_t, scene.gravity, ts)

@@ -107,7 +107,7 @@ def _sensitivities(make, scene, theta, t_end, max_segments, max_events, grazing_
     def solve(th):
         sc, prm = unpack(th)
         pl = plan(sc, prm, t_end, max_segments)
-        segs = segments_of(sc, prm, t_end, pl.decisions, pl.segments)
+        segs = segments_of(sc, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
         g = sc.gravity
         events = list_events(segs, pl.decisions, prm.e, prm.mu_t, g, max_events)
         flights = event_flights(segs, pl.decisions, prm.e, prm.mu_t, g, max_events)

@@ -167,7 +167,10 @@ def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks):
     if checks:
         params = check_runtime(params, t_end)
     flat = _flat_params(params)
-    out = jax.vmap(lambda prm: _ode.solve_one(scene, prm, t_end, ts, settings, max_events))(flat)
+    # Plan every ball first, then replay only as many steps as the longest uses (estim._scan).
+    plans = jax.vmap(lambda prm: _ode.plan(scene, prm, t_end, settings))(flat)
+    n_used = jnp.max(plans.n_steps)
+    out = jax.vmap(lambda prm, pl: _ode.finish(scene, prm, t_end, ts, settings, max_events, pl, n_used))(flat, plans)
     pos, vel, events, final, nodes, steps, normals, complete = out
     if checks:
         pos = eqx.error_if(pos, ~jnp.all(complete), _INCOMPLETE_ODE)
@@ -207,17 +210,20 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
         params = check_runtime(params, t_end)
 
     flat = _flat_params(params)
+    # Plan every ball first: derivatives then replay only as many segments as the batch's
+    # longest solution uses (one number for the batch, estim._scan).
+    plans = jax.vmap(lambda prm: plan(scene, prm, t_end, max_segments))(flat)
+    n_used = jnp.max(plans.n_segments)
 
-    def one(prm):
-        pl = plan(scene, prm, t_end, max_segments)
-        segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments)
+    def one(prm, pl):
+        segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, n_used)
         pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, scene.gravity, ts)
         events = list_events(segments, pl.decisions, prm.e, prm.mu_t, scene.gravity, max_events)
         last = jnp.maximum(pl.n_segments - 1, 0)
         final = State(t_end, segments.p1[last], segments.v1_post[last])
         return pos, vel, events, final, segments, pl.decisions, pl.complete
 
-    pos, vel, events, final, segments, decisions, complete = jax.vmap(one)(flat)
+    pos, vel, events, final, segments, decisions, complete = jax.vmap(one)(flat, plans)
     if checks:
         pos = eqx.error_if(pos, ~jnp.all(complete), _INCOMPLETE)
 

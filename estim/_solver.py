@@ -56,6 +56,7 @@ from ._contact import (
     slide_exit_time,
     train_reach,
 )
+from ._scan import scan_used
 from ._scene import Scene
 from ._train import series, series_end, state_at
 
@@ -302,41 +303,52 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     return Plan(decisions=decisions, segments=segments, n_segments=k, complete=done)
 
 
-def replay(scene: Scene, params, t_end, decisions: Decision) -> Segment:
-    """Recompute every segment from the structure, differentiably (``lax.scan``)."""
+def replay(scene: Scene, params, t_end, decisions: Decision, n_used=None) -> Segment:
+    """Recompute every segment from the structure, differentiably (a ``lax.scan`` that runs
+    only the first ``n_used`` segments, default all: ``estim._scan``)."""
 
     faces = faces_for(scene, params.radius)
+    a = jnp.array([0.0, 0.0, -1.0]) * scene.gravity
 
     def step(state, d):
         t, p, v = state
         seg = advance(faces, scene.gravity, params, t, p, v, d, t_end)
         return (seg.t1, seg.p1, seg.v1_post), seg
 
+    def idle(state):
+        """What ``advance`` gives for an UNUSED slot: the state, unchanged."""
+        t, p, v = state
+        return Segment(t, p, v, a, t, p, v, v, jnp.zeros(3))
+
     # t starts as 0 * e, not a constant: its tangent and batch axis are then those of the
     # rest of the carry from the start, and JAX traces the scan's body once, not to a
     # fixed point (seconds of tracing inside a fit's jacfwd and vmap).
     init = (0.0 * params.e, params.position, params.velocity)
-    _, segments = jax.lax.scan(step, init, decisions)
+    unused = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.float64(0.0), jnp.int32(END), jnp.int32(-1))
+    n_used = decisions.kind.shape[0] if n_used is None else n_used
+    _, segments = scan_used(step, init, decisions, n_used, idle, unused)
     return segments
 
 
 @jax.custom_jvp
-def segments_of(scene: Scene, params, t_end, decisions: Decision, planned: Segment) -> Segment:
+def segments_of(scene: Scene, params, t_end, decisions: Decision, planned: Segment, n_used) -> Segment:
     """The segments of a plan, with the derivatives of ``replay``.
 
     The forward pass reuses the values ``plan`` already computed; only derivatives run
-    ``replay`` (forward mode directly, reverse mode through JAX's transpose of it).
+    ``replay`` (forward mode directly, reverse mode through JAX's transpose of it), over
+    the first ``n_used`` segments (at least the plan's ``n_segments``; one number for a
+    whole batch makes the rest free, ``estim._scan``).
     """
     return planned
 
 
 @segments_of.defjvp
 def _segments_of_jvp(primals, tangents):
-    scene, params, t_end, decisions, planned = primals
-    d_scene, d_params, d_t_end, _, _ = tangents
+    scene, params, t_end, decisions, planned, n_used = primals
+    d_scene, d_params, d_t_end, _, _, _ = tangents
 
     def f(s, p, t):
-        return replay(s, p, t, decisions)
+        return replay(s, p, t, decisions, n_used)
 
     _, d_out = jax.jvp(f, (scene, params, t_end), (d_scene, d_params, d_t_end))
     return planned, d_out
