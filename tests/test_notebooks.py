@@ -119,11 +119,11 @@ def test_04_accuracy_cost(tmp_path):
     else:
         assert "Committed study not found" in proc.stdout
     # (a) Vacuum: the closed form's seed numbers (9 / 6 / 4 events, the seed gradient of
-    # notebook 3), and the ODE path agrees with it to rounding, at a cost.
+    # notebook 3), and the ODE path agrees with it to rounding (its cost is shown, not
+    # asserted: timings belong to benchmarks).
     assert s["vacuum_events"] == [9, 6, 4]
     assert s["closed_form_gradient"] == pytest.approx([0.19213914, 6.81524982, 2.17816532], abs=5e-8)
     assert s["vacuum_max_error"] < 1e-9
-    assert s["vacuum_forward_ratio"][1] > 2
     # (b) Still air: the default is within a micrometre of the tight reference, with its
     # events; the step count never grows as rtol loosens, and stops falling at loose rtol.
     default, ref = s["air_default"], s["air_reference"]
