@@ -42,7 +42,9 @@ from ._config import FIT_COMPILE, jit, require_x64
 from ._initial import Initial, initial_guess
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
-from ._ode import OdeSettings, solve_one
+from ._ode import OdeSettings
+from ._ode import finish as ode_finish
+from ._ode import plan as ode_plan
 from ._params import DRAG_COEFFICIENT, Params
 from ._scene import Scene
 from ._solver import plan, segments_of
@@ -121,44 +123,64 @@ def _to_theta(phi, free):
 FIT_ODE = dict(rtol=1e-8, atol=1e-9, contact_slack=1e-6, max_steps=1024)
 
 
-def _simulate_at(scene: Scene, phi, problem: _Problem, max_segments: int):
-    """Model positions at the sample times, the events and the sample times, for physical
-    values phi: the closed form in a vacuum, the ODE path in a scene with air."""
+def _model(scene: Scene, phi, problem: _Problem):
+    """The model's parameters, sample times and end time for physical values phi."""
     e, mu_t, vx0, x0, z0, vz0, t0, y0, vy0, cd, spin_y = (phi[i] for i in range(len(PARAMETERS)))
     params = Params(e, mu_t, problem.radius, jnp.stack([x0, y0, z0]), jnp.stack([vx0, vy0, vz0]),
                     mass=problem.mass, drag_coefficient=cd, spin=jnp.stack([0.0, spin_y, 0.0]))
     ts = jnp.clip(problem.t - t0, 0.0, None)
-    t_end = jnp.maximum(jnp.max(ts), 1e-3)
+    return params, ts, jnp.maximum(jnp.max(ts), 1e-3)
+
+
+def _ode_settings():
+    return OdeSettings(diffrax.Tsit5(), *(jnp.asarray(FIT_ODE[k]) for k in ("rtol", "atol", "contact_slack")),
+                       FIT_ODE["max_steps"])
+
+
+def _plan_at(scene: Scene, phi, problem: _Problem, max_segments: int):
+    """The discrete structure of the model at phi (values only: no derivatives flow through
+    a plan), and how many slots it uses."""
+    params, _, t_end = _model(scene, phi, problem)
     if scene.air is not None:
-        settings = OdeSettings(diffrax.Tsit5(), *(jnp.asarray(FIT_ODE[k]) for k in ("rtol", "atol", "contact_slack")),
-                               FIT_ODE["max_steps"])
-        pos, _, events, *_ = solve_one(scene, params, t_end, ts, settings, 64)
-        return pos, events, ts
+        pl = ode_plan(scene, params, t_end, _ode_settings())
+        return pl, pl.n_steps
     pl = plan(scene, params, t_end, max_segments)
-    segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, pl.n_segments)
-    pos, _ = sample(segs, pl.decisions, e, mu_t, scene.gravity, ts)
+    return pl, pl.n_segments
+
+
+def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
+    """Model positions at the sample times, the events and the sample times, for physical
+    values phi and their plan ``pl``: the closed form in a vacuum, the ODE path in a scene
+    with air. Derivatives replay the first ``n_used`` slots (the batch's largest count)."""
+    params, ts, t_end = _model(scene, phi, problem)
+    if scene.air is not None:
+        pos, _, events, *_ = ode_finish(scene, params, t_end, ts, _ode_settings(), 64, pl, n_used)
+        return pos, events, ts
+    segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, n_used)
+    pos, _ = sample(segs, pl.decisions, params.e, params.mu_t, scene.gravity, ts)
     # The events only count impacts (a report, not differentiated): listed from the plan's
     # values, they stay out of the Jacobian's forward-mode trace.
-    e_, mu_ = jax.lax.stop_gradient((e, mu_t))
+    e_, mu_ = jax.lax.stop_gradient((params.e, params.mu_t))
     return pos, list_events(pl.segments, pl.decisions, e_, mu_, scene.gravity, 64), ts
 
 
-def _residuals(scene, phi, problem, max_segments):
+def _residuals(scene, phi, problem, pl, n_used):
     """Masked residuals (flattened), which entries are valid, model positions, impacts."""
-    pos, events, ts = _simulate_at(scene, phi, problem, max_segments)
+    pos, events, ts = _simulate_at(scene, phi, problem, pl, n_used)
     valid = problem.mask & (problem.t >= phi[PARAMETERS.index("t0")])[:, None]
     r = jnp.where(valid, pos - problem.obs, 0.0).reshape(-1)
     impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts))).astype(jnp.int32)
     return r, (valid.reshape(-1), pos, impacts)
 
 
-def _lm_step(scene, free, loss, max_segments, carry, problem):
-    """One Levenberg-Marquardt iteration for one ball: residuals and Jacobian at theta
-    (forward mode, one simulation), keep the best point seen, step."""
+def _lm_step(scene, free, loss, carry, problem, pl, n_used):
+    """One Levenberg-Marquardt iteration for one ball, whose model at theta has the plan
+    ``pl``: residuals and Jacobian at theta (forward mode, one simulation), keep the best
+    point seen, step."""
     theta, state, best = carry
 
     def evaluate(theta):
-        r, aux = _residuals(scene, _to_physical(theta, free, problem.fixed), problem, max_segments)
+        r, aux = _residuals(scene, _to_physical(theta, free, problem.fixed), problem, pl, n_used)
         return r, (r, aux)
 
     J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
@@ -508,8 +530,17 @@ def _run(scene, free, loss, steps, max_segments, theta, batch):
         (jnp.zeros((n_balls, m), bool), jnp.zeros(batch.obs.shape), jnp.zeros(n_balls, jnp.int32)),
     )
     carry = (theta, jax.vmap(_LM.init)(theta), best)
-    step = jax.vmap(lambda c, pr: _lm_step(scene, free, loss, max_segments, c, pr))
-    (_, state, best), history = jax.lax.scan(lambda c, _: step(c, batch), carry, None, length=steps)
+
+    def step(carry, _):
+        # Plan every ball first: the replays then run only as many slots as the longest
+        # solution of the batch uses (estim._scan).
+        at = lambda th, pr: _plan_at(scene, _to_physical(th, free, pr.fixed), pr, max_segments)  # noqa: E731
+        plans, used = jax.vmap(at)(carry[0], batch)
+        n_used = jnp.max(used)
+        one = lambda c, pr, pl: _lm_step(scene, free, loss, c, pr, pl, n_used)  # noqa: E731
+        return jax.vmap(one)(carry, batch, plans)
+
+    (_, state, best), history = jax.lax.scan(step, carry, None, length=steps)
     return state.best_params, history.T, best
 
 

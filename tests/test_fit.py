@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import estim
-from estim._fit import PARAMETERS, _Problem, _residuals
+from estim._fit import PARAMETERS, _plan_at, _Problem, _residuals
 from estim._loss import robust_loss
 from estim._trajectory import REST
 
@@ -203,7 +203,8 @@ def test_loss_gradient_matches_finite_differences(stairs):
 
     @jax.jit
     def loss(phi):
-        r, _ = _residuals(stairs, phi, problem, 48)
+        pl, n_used = _plan_at(stairs, phi, problem, 48)  # the model's structure at phi
+        r, _ = _residuals(stairs, phi, problem, pl, n_used)
         return jnp.sum(robust_loss(r / problem.scale, "cauchy"))
 
     grad = np.asarray(jax.jit(jax.grad(loss))(jnp.asarray(phi0)))
