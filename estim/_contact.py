@@ -49,6 +49,8 @@ SPEED_TOL = 1e-12
 # planes) got G2 = -1.2e-15 for the corner face, so it "entered" that face at tau = 0, and
 # from there the bevel, and so on, switching faces forever at one instant.
 ACCEL_TOL = 1e-12
+# A point on a face's plane lies on the face if it is inside the grown box to ON_FACE_TOL.
+ON_FACE_TOL = 1e-9
 # A bounce whose post-impact normal speed is below REST_SPEED ends the bounce series: the
 # remaining flights would last less than 2 REST_SPEED / g ~ 2e-10 s in all.
 REST_SPEED = 1e-9
@@ -173,9 +175,9 @@ def ballistic(p, v, a, tau):
 
 def on_face(q, centre, half, radius) -> Bool[Array, "*f"]:
     """Whether a point on a face's plane lies on the face: inside the grown box, eq. (1)
-    of ``estim._scene``, to within ``POSITION_TOL``."""
+    of ``estim._scene``, to within ``ON_FACE_TOL``."""
     excess = jnp.maximum(jnp.abs(q - centre) - half, 0.0)
-    return jnp.sum(excess, axis=-1) <= radius + 1e-9
+    return jnp.sum(excess, axis=-1) <= radius + ON_FACE_TOL
 
 
 def first_contact(
@@ -200,15 +202,27 @@ def first_contact(
     centre, half = faces.row[:, CENTRE], faces.row[:, HALF]
     tau = entering_time(normal @ p - offset, normal @ v, normal @ a)
     finite = jnp.isfinite(tau)
-    q, _ = ballistic(p, v, a, jnp.where(finite, tau, 0.0)[:, None])
-    ok = finite & on_face(q, centre, half, faces.radius)
+    # on_face at the entering points, one axis at a time: (faces, 3) arrays reduced over
+    # their axis of 3 do not vectorise on the CPU, and this test over every face was most
+    # of the cost of a segment in large batches (0.9 instead of 1.8 us per ball).
+    at = jnp.where(finite, tau, 0.0)
+    excess = sum(
+        jnp.maximum(jnp.abs(p[i] + v[i] * at + 0.5 * a[i] * at * at - centre[:, i]) - half[:, i], 0.0)
+        for i in range(3)
+    )
+    ok = finite & (excess <= faces.radius + ON_FACE_TOL)
     ok = ok & (jnp.arange(tau.shape[0]) != exclude)
     tau = jnp.where(ok, tau, jnp.inf)
+
+    n_faces = tau.shape[0]
+    # Ties broken by rank, then by index, with one integer min (an argmin is a two-operand
+    # reduction, slower on the CPU).
+    order = faces.rank * n_faces + jnp.arange(n_faces, dtype=faces.rank.dtype)
 
     def earliest(tau):
         t_min = jnp.min(tau)
         near = tau <= t_min + 1e-12
-        return t_min, jnp.argmin(jnp.where(near, faces.rank, 99)).astype(jnp.int32)
+        return t_min, (jnp.min(jnp.where(near, order, 4 * n_faces)) % n_faces).astype(jnp.int32)
 
     def blocked(face, t):
         """The ball touches a lower-rank face bordering ``face`` at its contact point

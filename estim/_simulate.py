@@ -14,7 +14,7 @@ from ._config import jit, require_x64
 from ._ode import OdeSettings
 from ._params import Params, check_runtime, check_t_end
 from ._scene import Scene
-from ._solver import plan, segments_of
+from ._solver import plan_batch, segments_of
 from ._trajectory import ClosedFormSolution, State, Trajectory, list_events, sample
 
 __all__ = ["simulate"]
@@ -212,7 +212,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     flat = _flat_params(params)
     # Plan every ball first: derivatives then replay only as many segments as the batch's
     # longest solution uses (one number for the batch, estim._scan).
-    plans = jax.vmap(lambda prm: plan(scene, prm, t_end, max_segments))(flat)
+    plans = plan_batch(scene, flat, t_end, max_segments)
     n_used = jnp.max(plans.n_segments)
 
     def one(prm, pl):
