@@ -89,10 +89,12 @@ def simulate(
     if not isinstance(params, Params):
         raise TypeError(f"params must be an estim.Params, got {type(params).__name__}")
     check_t_end(t_end)
-    t_end = jnp.asarray(t_end, dtype=jnp.float64)
+    # Concrete inputs stay NumPy until the compiled call (each eager JAX op costs a dispatch).
+    xp = jnp if any(isinstance(x, jax.core.Tracer) for x in (t_end, ts)) else np
+    t_end = xp.asarray(t_end, dtype=np.float64)
     if ts is None:
-        ts = jnp.stack([jnp.zeros(()), t_end])
-    ts = jnp.asarray(ts, dtype=jnp.float64)
+        ts = xp.stack([xp.zeros(()), t_end])
+    ts = xp.asarray(ts, dtype=np.float64)
     if ts.ndim != 1:
         raise ValueError(f"ts must be one-dimensional, got shape {ts.shape}")
     if not isinstance(ts, jax.core.Tracer) and not isinstance(t_end, jax.core.Tracer):
@@ -261,11 +263,12 @@ def _check_outside(scene: Scene, params: Params) -> None:
     inside_box = depth < r[:, None] - 1e-9
     n, s = np.asarray(scene.plane_normal), np.asarray(scene.plane_offset)
     inside_plane = (p @ n.T) < s[None] + r[:, None] - 1e-9
-    for i in range(p.shape[0]):
+    bad = np.flatnonzero(inside_box.any(axis=1) | inside_plane.any(axis=1))
+    if bad.size:
+        i = int(bad[0])
         hit = [scene.names[j] for j in np.flatnonzero(inside_box[i])]
         hit += [scene.names[scene.n_boxes + j] for j in np.flatnonzero(inside_plane[i])]
-        if hit:
-            raise ValueError(
-                f"ball {i} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
-                f"than its radius {r[i]} to the solid (release it outside every solid)"
-            )
+        raise ValueError(
+            f"ball {i} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
+            f"than its radius {r[i]} to the solid (release it outside every solid)"
+        )
