@@ -74,7 +74,7 @@ def compile_options(options: tuple[tuple[str, object], ...]) -> dict:
     return accepted
 
 
-def _top_level() -> bool:
+def top_level() -> bool:
     """Whether no JAX transformation is tracing (JAX takes compile options only from a
     top-level jit: inside a user's jit the outer program is what gets compiled)."""
     clean = getattr(jax._src.core, "trace_state_clean", None)
@@ -91,7 +91,7 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
     @functools.wraps(fun)
     def call(*args, **kwargs):
         nonlocal top
-        if not _top_level():
+        if not top_level():
             return nested(*args, **kwargs)
         if top is None:
             top = eqx.filter_jit(fun, compiler_options=compile_options(options))

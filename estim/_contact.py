@@ -59,18 +59,39 @@ REST_SPEED = 1e-9
 class Faces(eqx.Module):
     """Every contact face of a scene for one ball radius, packed for fast lookup.
 
-    ``row`` holds one row per face: unit normal (3), plane offset H including the radius
-    (1), centre (3) and half sizes (3) of the owning box (infinite for a plane), face
-    direction m (3), index of the owning solid (1). ``lo``/``hi`` are the corners of every
-    solid's box grown by r along each axis (planes are boxes with infinite sides).
+    ``row`` holds one row per face: unit normal (3), plane offset H of the face itself (1),
+    centre (3) and half sizes (3) of the owning box (infinite for a plane), face direction
+    m (3), index of the owning solid (1). ``box_lo``/``box_hi`` are the corners of every
+    solid's box (planes are boxes with infinite sides). The ball's radius r enters only
+    through ``offset`` (the face plane moved out by r: H + r growth, growth = 1/|m|) and
+    ``lo``/``hi`` (the boxes grown by r along each axis), so the table itself is shared by
+    balls of any radius: a batch of balls needs one table, not one each.
     """
 
     row: Float[Array, "faces 14"]
+    growth: Float[Array, " faces"]
     rank: Int[Array, " faces"]
     lower: Int[Array, "faces 6"]  # faces of the same box that border this one, of lower rank (-1: none)
-    lo: Float[Array, "solids 3"]
-    hi: Float[Array, "solids 3"]
+    box_lo: Float[Array, "solids 3"]
+    box_hi: Float[Array, "solids 3"]
     radius: Float[Array, ""]
+
+    @property
+    def offset(self) -> Float[Array, " faces"]:
+        """Plane offset of every face for the ball's centre: ``n . x = offset`` on contact."""
+        return self.row[:, OFFSET] + self.radius * self.growth
+
+    @property
+    def lo(self) -> Float[Array, "solids 3"]:
+        return self.box_lo - self.radius
+
+    @property
+    def hi(self) -> Float[Array, "solids 3"]:
+        return self.box_hi + self.radius
+
+    def normal_offset(self, face):
+        """Unit normal and offset (for the ball's centre) of face ``face``."""
+        return self.row[face, NORMAL], self.row[face, OFFSET] + self.radius * self.growth[face]
 
 
 NORMAL, OFFSET, CENTRE, HALF, DIRECTION, SOLID = slice(0, 3), 3, slice(4, 7), slice(7, 10), slice(10, 13), 13
@@ -90,10 +111,10 @@ def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
         c, h = scene.box_centre[box], scene.box_half[box]
     else:  # planes only
         c = h = jnp.zeros((len(solid), 3))
-    offset = (jnp.sum(m * c, axis=1) + jnp.sum(np.abs(m) * h, axis=1) + radius) / norm
+    offset = (jnp.sum(m * c, axis=1) + jnp.sum(np.abs(m) * h, axis=1)) / norm
     normal = jnp.asarray(m / norm[:, None])
     if scene.plane_offset.shape[0]:
-        offset = jnp.where(is_box, offset, scene.plane_offset[plane] + radius)
+        offset = jnp.where(is_box, offset, scene.plane_offset[plane])
         normal = jnp.where(is_box[:, None], normal, scene.plane_normal[plane])
     half = jnp.where(is_box[:, None], h, jnp.inf)
     centre = jnp.where(is_box[:, None], c, 0.0)
@@ -101,15 +122,16 @@ def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
         [normal, offset[:, None], centre, half, jnp.asarray(m), jnp.asarray(solid, float)[:, None]],
         axis=1,
     )
-    # Solids as boxes grown by r per axis; a plane sigma x_k <= s is x_k <= s + r
-    # (sigma = 1) or x_k >= -(s + r) (sigma = -1), unbounded along the other axes.
-    pn, ps = scene.plane_normal, (scene.plane_offset + radius)[:, None]
-    lo = jnp.concatenate([scene.box_centre - scene.box_half - radius, jnp.where(pn < 0, -ps, -jnp.inf)])
-    hi = jnp.concatenate([scene.box_centre + scene.box_half + radius, jnp.where(pn > 0, ps, jnp.inf)])
+    # Solids as boxes (grown by r per axis in ``Faces.lo``/``hi``); a plane sigma x_k <= s
+    # is x_k <= s (+ r) for sigma = 1 or x_k >= -s (- r) for sigma = -1, unbounded along
+    # the other axes.
+    pn, ps = scene.plane_normal, scene.plane_offset[:, None]
+    box_lo = jnp.concatenate([scene.box_centre - scene.box_half, jnp.where(pn < 0, -ps, -jnp.inf)])
+    box_hi = jnp.concatenate([scene.box_centre + scene.box_half, jnp.where(pn > 0, ps, jnp.inf)])
     rank = np.where(is_box, np.abs(m).sum(axis=1), 1).astype(np.int32)
     lower = _lower_faces(scene.face_solid, scene.face_direction, scene.n_boxes)
-    return Faces(row=row, rank=jnp.asarray(rank), lower=jnp.asarray(lower), lo=lo, hi=hi,
-                 radius=jnp.asarray(radius))
+    return Faces(row=row, growth=jnp.asarray(np.where(is_box, 1.0 / norm, 1.0)), rank=jnp.asarray(rank),
+                 lower=jnp.asarray(lower), box_lo=box_lo, box_hi=box_hi, radius=jnp.asarray(radius))
 
 
 @functools.lru_cache(maxsize=64)
@@ -198,7 +220,7 @@ def first_contact(
     face too: a ball that touches the tread top there but leaves it (a rebound from the
     edge point) or moves along it (a slide on the top) is not stopped by the bevel.
     """
-    normal, offset = faces.row[:, NORMAL], faces.row[:, OFFSET]
+    normal, offset = faces.row[:, NORMAL], faces.offset
     centre, half = faces.row[:, CENTRE], faces.row[:, HALF]
     tau = entering_time(normal @ p - offset, normal @ v, normal @ a)
     finite = jnp.isfinite(tau)
@@ -252,8 +274,7 @@ def face_normal(faces: Faces, face):
 
 def face_entering_time(faces: Faces, face, p, v, a):
     """``entering_time`` for one face, recomputed from the state (differentiable)."""
-    r = faces.row[face]
-    n, h = r[NORMAL], r[OFFSET]
+    n, h = faces.normal_offset(face)
     return entering_time(n @ p - h, n @ v, n @ a)
 
 

@@ -53,7 +53,6 @@ from ._contact import (
     DIRECTION,
     HALF,
     NORMAL,
-    OFFSET,
     REST_SPEED,
     SPEED_TOL,
     Faces,
@@ -176,7 +175,8 @@ def _guard(faces: Faces, kind, face, bound):
     n_exit = sg * e_i
     h_exit = sg * row[CENTRE][axis] - jnp.where(jnp.isfinite(bt), bt, 0.0)
     is_exit = kind == EXIT
-    return jnp.where(is_exit, n_exit, row[NORMAL]), jnp.where(is_exit, h_exit, row[OFFSET])
+    n_face, h_face = faces.normal_offset(jnp.maximum(face, 0))
+    return jnp.where(is_exit, n_exit, n_face), jnp.where(is_exit, h_exit, h_face)
 
 
 def _exit_bound(faces: Faces, face, q):

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._config import require_x64
-from ._contact import NORMAL, OFFSET, faces_for
+from ._contact import NORMAL, faces_for
 from ._params import Params
 from ._scene import Scene
 from ._solver import plan, segments_of
@@ -123,8 +123,8 @@ def _sensitivities(make, scene, theta, t_end, max_segments, max_events, grazing_
         sc, prm, _, (t_s, p_s, v_s, acc, _) = solve(th)
         tau = jnp.where(crossing, t_fixed - t_s, 0.0)[:, None]
         x = p_s + v_s * tau + 0.5 * acc * tau**2
-        row = faces_for(sc, prm.radius).row[face]
-        return jnp.sum(row[:, NORMAL] * x, axis=1) - row[:, OFFSET]
+        normal, offset = faces_for(sc, prm.radius).normal_offset(face)
+        return jnp.sum(normal * x, axis=1) - offset
 
     numerator = jax.jacfwd(guard)(theta)
     sc, prm = unpack(theta)

@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from . import _ode
-from ._config import jit, require_x64
+from ._config import jit, require_x64, top_level
 from ._ode import OdeSettings
 from ._params import Params, check_runtime, check_t_end
 from ._scene import Scene
@@ -89,8 +89,11 @@ def simulate(
     if not isinstance(params, Params):
         raise TypeError(f"params must be an estim.Params, got {type(params).__name__}")
     check_t_end(t_end)
-    # Concrete inputs stay NumPy until the compiled call (each eager JAX op costs a dispatch).
-    xp = jnp if any(isinstance(x, jax.core.Tracer) for x in (t_end, ts)) else np
+    # Inside a transformation (jit, grad, make_jaxpr...) every value is traced; at top level,
+    # concrete inputs stay NumPy until the compiled call (each eager JAX op costs a dispatch).
+    traced = not top_level() or any(
+        isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((scene, params, t_end, ts)))
+    xp = jnp if traced else np
     t_end = xp.asarray(t_end, dtype=np.float64)
     if ts is None:
         ts = xp.stack([xp.zeros(()), t_end])
@@ -117,7 +120,6 @@ def simulate(
             f"rtol, atol and contact_slack must be > 0, got rtol={rtol!r}, atol={atol!r}, "
             f"contact_slack={contact_slack!r}"
         )
-    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((scene, params, t_end, ts)))
     # Called with concrete values, the inputs were checked above and completion is checked
     # below, in Python: the compiled program then has no host callbacks and can live in
     # JAX's persistent compilation cache. Inside a user's jit/grad the checks run in-graph.

@@ -272,18 +272,22 @@ def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
     scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
     g = scene.gravity
     batch = params.e.shape[0]
-    faces = jax.vmap(lambda r: faces_for(scene, r))(params.radius)
+    table = faces_for(scene, jnp.float64(0.0))  # one table for every ball (estim._contact.Faces)
     t_end = jnp.broadcast_to(t_end, (batch,))
     S = max_segments
     zeros = jnp.zeros(batch)
     ints = jnp.zeros(batch, jnp.int32)
     d0 = Decision(ints + UNUSED, ints - 1, zeros, ints + END, ints - 1)
-    first = jax.vmap(advance, in_axes=(0, None, 0, 0, 0, 0, 0, 0))(
-        faces, g, params, zeros, params.position, params.velocity, d0, t_end)
+    def faces_of(radius):
+        return eqx.tree_at(lambda f: f.radius, table, radius)
+
+    first = jax.vmap(lambda prm, d, t1: advance(faces_of(prm.radius), g, prm, 0.0 * prm.e, prm.position,
+                                                prm.velocity, d, t1))(params, d0, t_end)
     record = jax.tree.map(lambda x: jnp.broadcast_to(x[:, None], (batch, S) + x.shape[1:]), (d0, first))
 
-    def step(faces, params, t_end, t, p, v, kind, support, n):
+    def step(params, t_end, t, p, v, kind, support, n):
         """One segment of one ball: how it ends, its closed form, what follows it."""
+        faces = faces_of(params.radius)
         reason, face = _decide_end(faces, g, params, t, p, v, kind, support, n, t_end)
         d = Decision(kind, support, n, reason, face)
         seg = advance(faces, g, params, t, p, v, d, t_end)
@@ -295,7 +299,7 @@ def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
     def body(carry):
         k, count, state, done, record = carry
-        d, seg, following = jax.vmap(step)(faces, params, t_end, *state)
+        d, seg, following = jax.vmap(step)(params, t_end, *state)
         active = ~done
 
         def keep(new, old):
