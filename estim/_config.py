@@ -55,8 +55,8 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
 # as fast (measured on the 2-core reference machine, jax 0.10.2).
 FAST_COMPILE = (("xla_cpu_use_fusion_emitters", False),)
 # A fit compiles one program per process and runs it a few times (window, all data,
-# restarts): unoptimised machine code compiles it in 5.0 s instead of 7.0 s, and a fit of
-# the bundled tracks then takes 0.30 s instead of 0.17 s.
+# restarts): unoptimised machine code compiles it in 5.0 s instead of 7.0 s, for about
+# 0.1 s more run time per fit of the bundled tracks.
 FIT_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
 
 
