@@ -266,8 +266,9 @@ def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
     One loop for the batch, rather than ``vmap`` of a loop per ball: a vmapped while loop
     selects every carried value between its old and new state at every iteration, the
-    ``(balls, max_segments)`` record of segments included, which cost 40% of a
-    10,000-ball solve. Here the loop writes one column of the record per iteration.
+    ``(balls, max_segments)`` record of segments included (planning 10,000 balls took
+    0.87 s that way, 0.61 s this way). Here the loop writes one column of the record per
+    iteration, and all balls share one face table.
     """
     scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
     g = scene.gravity
@@ -278,12 +279,13 @@ def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
     zeros = jnp.zeros(batch)
     ints = jnp.zeros(batch, jnp.int32)
     d0 = Decision(ints + UNUSED, ints - 1, zeros, ints + END, ints - 1)
+
     def faces_of(radius):
         return eqx.tree_at(lambda f: f.radius, table, radius)
 
-    first = jax.vmap(lambda prm, d, t1: advance(faces_of(prm.radius), g, prm, 0.0 * prm.e, prm.position,
-                                                prm.velocity, d, t1))(params, d0, t_end)
-    record = jax.tree.map(lambda x: jnp.broadcast_to(x[:, None], (batch, S) + x.shape[1:]), (d0, first))
+    z3 = jnp.zeros((batch, 3))
+    blank = Segment(zeros, z3, z3, z3, zeros, z3, z3, z3, z3)  # each slot is written, or filled below
+    record = jax.tree.map(lambda x: jnp.broadcast_to(x[:, None], (batch, S) + x.shape[1:]), (d0, blank))
 
     def step(params, t_end, t, p, v, kind, support, n):
         """One segment of one ball: how it ends, its closed form, what follows it."""
