@@ -136,6 +136,10 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     forward_batch = jax.jit(lambda p: estim.simulate(scene, p, t_end, throw=False))
     batch_us = _median_us(forward_batch, many, max(min(repeats, 20), 3), warmup=1)
     incomplete = int(np.sum(~np.asarray(forward_batch(many).complete)))
+    # The same batch when only the final states are kept: the rest of the call is the dense
+    # solution, the samples and the event lists (docs/pages/speed.md).
+    final_batch = jax.jit(lambda p: estim.simulate(scene, p, t_end, throw=False).final)
+    batch_final_us = _median_us(final_batch, many, max(min(repeats, 20), 3), warmup=1)
 
     result = {
         "forward_us": forward_us,
@@ -147,6 +151,7 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         "import_s": first["import_s"],
         "batch": batch,
         "batch_us": batch_us,
+        "batch_final_us": batch_final_us,
         "batch_balls_per_s": batch / (batch_us * 1e-6),
         "batch_incomplete": incomplete,
         "repeats": repeats,
@@ -185,8 +190,8 @@ def format_speed(r: dict) -> str:
         "",
         f"first call with the persistent compilation cache warm: {r['first_call_cached_s']:.3f} s",
         f"forward without jit (estim.simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
-        f"batch of {r['batch']}: {r['batch_us']:.1f} us/call "
-        f"({r['batch_incomplete']} balls incomplete within max_segments); "
+        f"batch of {r['batch']}: {r['batch_us']:.1f} us/call, {r['batch_final_us']:.1f} us keeping "
+        f"only the final states ({r['batch_incomplete']} balls incomplete within max_segments); "
         f"import estim: {r['import_s']:.2f} s",
         "gradient d(golf final x)/d(e, mu_t, vx0) = "
         + ", ".join(f"{v:.8f}" for v in r["gradient"].values()),

@@ -174,7 +174,7 @@ def test_demo(capsys, tmp_path):
 def test_bench_speed_json(capsys):
     assert main(["bench", "speed", "--json", "--batch", "100", "--repeats", "3"]) == 0
     out = json.loads(capsys.readouterr().out)
-    for key in ("forward_us", "gradient_us", "first_call_s", "batch_us", "batch_balls_per_s",
+    for key in ("forward_us", "gradient_us", "first_call_s", "batch_us", "batch_final_us", "batch_balls_per_s",
                 "targets", "machine"):
         assert key in out
     assert set(out["targets"]) == {"forward_us", "gradient_us", "first_call_s", "batch_balls_per_s"}
