@@ -317,8 +317,7 @@ def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
     _, count, _, done, (decisions, segments) = jax.lax.while_loop(cond, body, init)
     # Unused slots hold the final state, so that sampling past the last segment is exact.
     last = jax.tree.map(lambda x: x[jnp.arange(batch), jnp.maximum(count - 1, 0)], segments)
-    zero3 = jnp.zeros((batch, 3))
-    fill = Segment(last.t1, last.p1, last.v1_post, zero3, last.t1, last.p1, last.v1_post, last.v1_post, zero3)
+    fill = Segment(last.t1, last.p1, last.v1_post, z3, last.t1, last.p1, last.v1_post, last.v1_post, z3)
     unused = jnp.arange(S)[None, :] >= count[:, None]
     segments = jax.tree.map(
         lambda x, f: jnp.where(unused.reshape((batch, S) + (1,) * (f.ndim - 1)), f[:, None], x), segments, fill
