@@ -41,7 +41,7 @@ import numpy as np
 from ._config import FIT_COMPILE, jit, require_x64
 from ._initial import Initial, initial_guess
 from ._levenberg_marquardt import levenberg_marquardt
-from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
+from ._loss import ROBUST_LOSSES, array_namespace, robust_loss, robust_weight
 from ._ode import OdeSettings
 from ._ode import finish as ode_finish
 from ._ode import plan as ode_plan
@@ -80,12 +80,6 @@ def _index(free):
     return np.array([PARAMETERS.index(n) for n in free])
 
 
-def _xp(x):
-    """The array namespace of x: jax.numpy inside the fit's program, numpy in the driver
-    (host-side arithmetic on a few numbers, which eager JAX would compile op by op)."""
-    return jnp if isinstance(x, jax.Array) else np
-
-
 def _sigmoid(x, xp):
     if xp is jnp:
         return jax.nn.sigmoid(x)
@@ -94,7 +88,7 @@ def _sigmoid(x, xp):
 
 
 def _to_physical(theta, free, fixed):
-    xp = _xp(theta)
+    xp = array_namespace(theta)
     values = [_sigmoid(theta[i], xp) if n in _BOUNDED else xp.exp(theta[i]) if n in _POSITIVE
               else theta[i] for i, n in enumerate(free)]
     if xp is np:
@@ -105,7 +99,7 @@ def _to_physical(theta, free, fixed):
 
 
 def _to_theta(phi, free):
-    xp = _xp(phi)
+    xp = array_namespace(phi)
     out = []
     for n in free:
         v = phi[PARAMETERS.index(n)]

@@ -28,13 +28,15 @@ _HUBER_C = 1.345
 _CAUCHY_C = 2.385
 
 
-def _xp(u):
-    return jnp if isinstance(u, jax.Array) else np  # numpy in, numpy out
+def array_namespace(x):
+    """jax.numpy for JAX arrays (inside traced programs), numpy otherwise: host-side
+    arithmetic on a few numbers stays NumPy instead of compiling JAX operations one by one."""
+    return jnp if isinstance(x, jax.Array) else np
 
 
 def robust_loss(u, kind: str):
     """rho(u) for standardised residuals u = r / s."""
-    xp = _xp(u)
+    xp = array_namespace(u)
     if kind == "l2":
         return 0.5 * u * u
     if kind == "huber":
@@ -47,7 +49,7 @@ def robust_loss(u, kind: str):
 
 def robust_weight(u, kind: str):
     """IRLS weight rho'(u) / u."""
-    xp = _xp(u)
+    xp = array_namespace(u)
     if kind == "l2":
         return xp.ones_like(u)
     if kind == "huber":

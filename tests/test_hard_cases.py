@@ -94,14 +94,19 @@ def _grad_any(scene, theta, radius, position, velocity, t_end, ts, path):
     return jax.grad(f)(theta[0])
 
 
-def reverse_gradient(scene, params: estim.Params, t_end, path, ts=None):
-    """``jax.grad`` (reverse mode) of the first ball's final x w.r.t. its (e, mu_t, vx0)."""
+def _theta_args(params: estim.Params, t_end, ts):
+    """The padded arguments of the compiled derivative programs: (theta = (e, mu_t, vx0)
+    per ball, radius, position, velocity, t_end, sample times)."""
     padded, _ = padded_params(params.e, params.mu_t, params.radius, params.position,
                               params.velocity)
     theta = jnp.stack([padded.e, padded.mu_t, padded.velocity[:, 0]], axis=1)
     ts = padded_ts(np.linspace(0.0, t_end, NT) if ts is None else ts)
-    args = (theta, padded.radius, padded.position, padded.velocity,
-            jnp.asarray(float(t_end)), ts)
+    return (theta, padded.radius, padded.position, padded.velocity, jnp.asarray(float(t_end)), ts)
+
+
+def reverse_gradient(scene, params: estim.Params, t_end, path, ts=None):
+    """``jax.grad`` (reverse mode) of the first ball's final x w.r.t. its (e, mu_t, vx0)."""
+    args = _theta_args(params, t_end, ts)
     if path == "closed_form":  # conftest's compiled program, shared with test_simulate
         return np.asarray(grad_final_x(scene, *args))
     return np.asarray(_grad_any(scene, *args, path=path))
@@ -112,12 +117,7 @@ def jacobian(scene, params: estim.Params, t_end, path, ts=None):
     times, sampled positions): ``((final, t, samples), (d final, d t, d samples))`` for the
     balls of ``params`` (each Jacobian with a trailing axis of 3)."""
     k = params.batch_shape[0]
-    padded, _ = padded_params(params.e, params.mu_t, params.radius, params.position,
-                              params.velocity)
-    theta = jnp.stack([padded.e, padded.mu_t, padded.velocity[:, 0]], axis=1)
-    ts = padded_ts(np.linspace(0.0, t_end, NT) if ts is None else ts)
-    args = (theta, padded.radius, padded.position, padded.velocity,
-            jnp.asarray(float(t_end)), ts)
+    args = _theta_args(params, t_end, ts)
     if path == "closed_form":  # conftest's compiled program, shared with the other modules
         values, jac = jac_outputs(scene, *args)
     else:
