@@ -164,6 +164,7 @@ def moves_into(g1, g2):
     return (g1 < -SPEED_TOL) | ((jnp.abs(g1) <= SPEED_TOL) & (g2 < -ACCEL_TOL))
 
 
+@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
 def entering_time(
     g0: Float[Array, "*f"], g1: Float[Array, "*f"], g2: Float[Array, "*f"]
 ) -> Float[Array, "*f"]:
@@ -188,6 +189,13 @@ def entering_time(
     tau = jnp.where(neg, 2.0 * g0 / den_a, (-g1 - s) / den_b)
     future = has_root & (tau > 0) & (neg | (g2 < 0))
     return jnp.where(touching & pushed, 0.0, jnp.where(future & ~along, tau, jnp.inf))
+
+
+def inner(x: Float[Array, "*n 3"], y: Float[Array, "*n 3"]) -> Float[Array, "*n"]:
+    """``x . y`` over the last axis of 3, written out: XLA:CPU compiles a ``dot`` as a call
+    into a linear-algebra library, and one such call in an event loop keeps the whole loop
+    from being compiled into a single kernel (``estim._config``)."""
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
 
 
 def ballistic(p, v, a, tau):
@@ -222,7 +230,7 @@ def first_contact(
     """
     normal, offset = faces.row[:, NORMAL], faces.offset
     centre, half = faces.row[:, CENTRE], faces.row[:, HALF]
-    tau = entering_time(normal @ p - offset, normal @ v, normal @ a)
+    tau = entering_time(inner(normal, p) - offset, inner(normal, v), inner(normal, a))
     finite = jnp.isfinite(tau)
     # on_face at the entering points, one axis at a time: (faces, 3) arrays reduced over
     # their axis of 3 do not vectorise on the CPU, and this test over every face was most
@@ -252,8 +260,8 @@ def first_contact(
         lower = faces.lower[face]
         nj = normal[jnp.maximum(lower, 0)]
         qf, wf = ballistic(p, v, a, jnp.where(jnp.isfinite(t), t, 0.0))
-        gj0 = nj @ qf - offset[jnp.maximum(lower, 0)]
-        gj1, gj2 = nj @ wf, nj @ a
+        gj0 = inner(nj, qf) - offset[jnp.maximum(lower, 0)]
+        gj1, gj2 = inner(nj, wf), inner(nj, a)
         touches = (lower >= 0) & (jnp.abs(gj0) <= POSITION_TOL)
         enters = moves_into(gj1, gj2)
         return jnp.isfinite(t) & jnp.any(touches & ~enters)
@@ -275,12 +283,12 @@ def face_normal(faces: Faces, face):
 def face_entering_time(faces: Faces, face, p, v, a):
     """``entering_time`` for one face, recomputed from the state (differentiable)."""
     n, h = faces.normal_offset(face)
-    return entering_time(n @ p - h, n @ v, n @ a)
+    return entering_time(inner(n, p) - h, inner(n, v), inner(n, a))
 
 
 def reset(v, n, e, mu_t):
     """Post-impact velocity, eq. (3)."""
-    vn = jnp.dot(v, n)
+    vn = inner(v, n)
     return mu_t * (v - vn * n) - e * vn * n
 
 
@@ -361,6 +369,7 @@ def series_clear(faces: Faces, face, p, v, duration, gravity):
     return ~jnp.any(meets & (jnp.arange(faces.lo.shape[0]) != faces.row[face, SOLID]))
 
 
+@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
 def geometric_sum(q, n):
     """``sum_{j<n} q^j = (1 - q^n) / (1 - q)`` for q in [0, 1] and real n >= 0 (n may be
     inf), accurate and differentiable up to q = 1, where it is n (with the exact first
@@ -379,6 +388,7 @@ def geometric_sum(q, n):
     return jnp.where(one, jnp.where(jnp.isfinite(n), at_one, jnp.inf), jnp.where(zero, at_zero, general))
 
 
+@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
 def geometric_count(q, y):
     """Largest whole n >= 0 with ``geometric_sum(q, n) <= y`` (inf if every n qualifies).
 
@@ -399,6 +409,7 @@ def geometric_count(q, y):
     return jnp.where(y < 0, -1.0, jnp.maximum(n, 0.0))
 
 
+@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
 def safe_power(x, n):
     """``x ** n`` for x in [0, 1] and whole n >= 0 (n may be inf), with finite gradients:
     ``x ** 0 = 1`` and ``x ** inf = 0`` (``1`` when x = 1)."""

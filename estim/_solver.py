@@ -50,6 +50,7 @@ from ._contact import (
     faces_for,
     first_contact,
     geometric_count,
+    inner,
     on_face,
     reset,
     series_clear,
@@ -100,11 +101,11 @@ def contact_velocity(v, n, a, e, mu_t):
     mu_t, so the ball keeps its tangential velocity only if mu_t = 1 (this makes e = 0 the
     limit of e -> 0: the ball sticks where it lands).
     """
-    vn = jnp.dot(v, n)
+    vn = inner(v, n)
     tangential = v - vn * n
     impact = -vn > REST_SPEED
     bounced = reset(v, n, e, mu_t)
-    settles = (e * -vn <= REST_SPEED) & (jnp.dot(n, a) < 0)
+    settles = (e * -vn <= REST_SPEED) & (inner(n, a) < 0)
     kept = jnp.where(mu_t == 1.0, 1.0, 0.0)
     return jnp.where(impact, jnp.where(settles, tangential * kept, bounced), tangential)
 
@@ -112,7 +113,7 @@ def contact_velocity(v, n, a, e, mu_t):
 def _slide_frame(faces, support, v, a):
     """Velocity and acceleration of a ball sliding on face ``support``."""
     n = face_normal(faces, jnp.maximum(support, 0))
-    return v - jnp.dot(v, n) * n, a - jnp.dot(a, n) * n
+    return v - inner(v, n) * n, a - inner(a, n) * n
 
 
 def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segment:
@@ -169,7 +170,7 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     face = jnp.maximum(d.face, 0)
     n_face = face_normal(faces, face)
     post = seg.v1_post
-    settled = (jnp.abs(jnp.dot(post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, a) < 0)
+    settled = (jnp.abs(inner(post, n_face)) <= REST_SPEED) & (inner(n_face, a) < 0)
     up = n_face[2] > 1.0 - 1e-12
     # A bounce series on an upward face: how many bounces provably land on it.
     w = post[2]
@@ -181,7 +182,7 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     n_train = jnp.where(reach < 0, 0.0, geometric_count(e * mu_t, y))
     # On an inclined face that supports the ball (an edge bevel) only a whole Zeno series is
     # summed, when its accumulation point and its first landing lie on the face.
-    inclined = (jnp.dot(n_face, a) < 0) & ~up & (e < 1)
+    inclined = (inner(n_face, a) < 0) & ~up & (e < 1)
     n_inc = jnp.where(inclined, n_face, jnp.array([0.0, 0.0, 1.0]))
     s = series(jnp.where(inclined, post, n_inc), n_inc, a)
     _, x_inf, _ = series_end(s, jnp.inf, e, mu_t)
@@ -197,7 +198,7 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     n_train = jnp.where(inclined, jnp.where(lands & clear, jnp.inf, 0.0), n_train)
     # A wall hit while sliding keeps the ball on its face.
     if_support = face_normal(faces, jnp.maximum(d.support, 0))
-    stays = (d.kind == SLIDE) & (jnp.abs(jnp.dot(n_face, if_support)) < 1e-12)
+    stays = (d.kind == SLIDE) & (jnp.abs(inner(n_face, if_support)) < 1e-12)
 
     after_contact_kind = jnp.where(
         stays | settled, SLIDE, jnp.where((up | inclined) & (n_train >= 1), TRAIN, FLIGHT)

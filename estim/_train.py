@@ -29,9 +29,10 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 
-from ._contact import geometric_count, geometric_sum, safe_power
+from ._contact import geometric_count, geometric_sum, inner, safe_power
 
 _GAP = 1e-6
 # Bounce counts are whole floats; beyond 2^52 float64 cannot count them. (An e = 1 series
@@ -51,8 +52,8 @@ class Series(NamedTuple):
 
 def series(v, normal, a) -> Series:
     """Decompose the post-bounce velocity ``v`` on a face of normal ``normal``."""
-    a_n = jnp.dot(a, normal)
-    w = jnp.dot(v, normal)
+    a_n = inner(a, normal)
+    w = inner(v, normal)
     return Series(normal, a_n, a - a_n * normal, w, v - w * normal, 2.0 * w / -a_n)
 
 
@@ -66,6 +67,7 @@ def _differences(e, mu, j):
     return k, l_
 
 
+@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
 def flight_start(s: Series, j, e, mu_t):
     """Time offset, displacement and velocity at the start of flight j (after bounce j)."""
     t = s.period * geometric_sum(e, j)
@@ -94,7 +96,7 @@ def series_end(s: Series, n, e, mu_t):
     duration, displacement, velocity = flight_start(s, n, e, mu_t)
     finite = jnp.isfinite(n)
     # At the Zeno limit the normal speed is 0 and the tangential velocity u_inf.
-    velocity = jnp.where(finite, velocity, velocity - jnp.dot(velocity, s.normal) * s.normal)
+    velocity = jnp.where(finite, velocity, velocity - inner(velocity, s.normal) * s.normal)
     return duration, displacement, velocity
 
 

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._contact import REST_SPEED, geometric_count
+from ._contact import REST_SPEED, geometric_count, inner
 from ._solver import BOUNCES, CONTACT, SETTLE, TRAIN, UNUSED, Decision, Segment
 from ._train import bounce, series, state_at
 
@@ -134,7 +134,7 @@ def sample(seg: Segment, d: Decision, e, mu_t, g, t):
     a = jnp.array([0.0, 0.0, -1.0]) * g
 
     def in_train(v0, normal, tau, n):
-        is_train = jnp.dot(v0, normal) > 0
+        is_train = inner(v0, normal) > 0
         normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
         s = series(jnp.where(is_train, v0, normal), normal, a)
         return state_at(s, tau, e, mu_t, n)
@@ -179,7 +179,7 @@ def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
 def _bounce(v0, normal, t0, p0, j, e, mu_t, g):
     """Bounce j (from 1) of a train: time, position, velocity before and after, and the
     start (time, position, velocity) of the flight that ends at it."""
-    is_train = jnp.dot(v0, normal) > 0
+    is_train = inner(v0, normal) > 0
     normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
     s = series(jnp.where(is_train, v0, normal), normal, jnp.array([0.0, 0.0, -1.0]) * g)
     t, x, pre, post, (t_s, x_s, v_s) = bounce(s, j, e, mu_t)

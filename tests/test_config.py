@@ -1,0 +1,100 @@
+"""How estim runs on XLA:CPU (``estim._config``): small loops compiled as one kernel."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import estim
+from estim import _config
+from estim._contact import inner
+from estim._simulate import _flat_params
+from estim._solver import plan_batch, replay
+
+from conftest import STAIRS_XML, seed_params
+
+_PROBE = (
+    "import os, json, sys\n"
+    "{before}\n"
+    "import estim\n"
+    "from estim import _config\n"
+    "print(json.dumps([_config.SMALL_LOOPS_AS_KERNELS, os.environ.get('XLA_FLAGS', '')]))\n"
+)
+_OPTION = f"xla_cpu_small_while_loop_byte_threshold={_config.SMALL_LOOP_BYTES}"
+
+
+def _probe(before: str = "", xla_flags: str | None = None):
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    if xla_flags is not None:
+        env["XLA_FLAGS"] = xla_flags
+    out = subprocess.run([sys.executable, "-c", _PROBE.format(before=before)], env=env,
+                         capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_inner_is_the_dot_product():
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(5, 86, 3)), rng.normal(size=3)
+    np.testing.assert_allclose(inner(x, y), np.einsum("...i,i->...", x, y), rtol=1e-14, atol=1e-14)
+
+
+def test_import_raises_the_small_loop_threshold():
+    active, flags = _probe(xla_flags="--xla_cpu_enable_fast_math=false")
+    assert active
+    assert flags == f"--xla_cpu_enable_fast_math=false --xla_backend_extra_options={_OPTION}"
+
+
+def test_a_users_extra_options_are_left_alone():
+    mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1024"
+    assert _probe(xla_flags=mine) == [False, mine]
+
+
+def test_a_started_backend_is_left_alone():
+    # XLA reads XLA_FLAGS once, when JAX starts its backend: after that, setting it would
+    # change nothing, so estim does not pretend to.
+    active, flags = _probe(before="import jax.numpy as jnp; jnp.zeros(1)")
+    assert not active and flags == ""
+
+
+def _loop_owners(hlo: str) -> list[str]:
+    """Names of the computations that hold a while loop, in optimised HLO text."""
+    owners, current = [], None
+    for line in hlo.splitlines():
+        head = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
+        if head:
+            current = head.group(1)
+        elif re.search(r"\bwhile\(", line):
+            owners.append(current)
+    return owners
+
+
+@pytest.mark.skipif(not _config.SMALL_LOOPS_AS_KERNELS, reason="XLA's backend started before estim")
+def test_event_loops_compile_to_one_kernel():
+    """The planning loop and the derivative replay call no library routine (a dot, a
+    scatter), so XLA:CPU compiles each into a single kernel: every while loop of the
+    compiled program lies inside an outlined ``*_computation`` (SmallWhileLoopHoistingPass)."""
+    scene = estim.load_scene(STAIRS_XML)
+    golf = estim.Params.for_ball(scene, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0.0, 0.0))
+    three = _flat_params(seed_params(scene))  # the seed's three balls
+
+    plan_hlo = jax.jit(lambda p: plan_batch(scene, p, 2.3, 48)).lower(three).compile().as_text()
+    decisions = plan_batch(scene, _flat_params(golf), 2.3, 48).decisions
+    decisions = jax.tree.map(lambda x: x[0], decisions)
+
+    def final_x(e):
+        return replay(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3, decisions).p1[-1, 0]
+
+    grad_hlo = jax.jit(jax.jacfwd(final_x)).lower(jnp.float64(0.7)).compile().as_text()
+    for hlo in (plan_hlo, grad_hlo):
+        owners = _loop_owners(hlo)
+        assert owners, "no while loop found"
+        assert all(name.endswith("_computation") for name in owners), owners
