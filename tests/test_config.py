@@ -13,14 +13,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import STAIRS_XML, seed_params
 
 import estim
 from estim import _config
 from estim._contact import inner
 from estim._simulate import _flat_params
 from estim._solver import plan_batch, replay
-
-from conftest import STAIRS_XML, seed_params
 
 _PROBE = (
     "import os, json, sys\n"
