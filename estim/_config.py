@@ -97,6 +97,11 @@ FAST_COMPILE = (("xla_cpu_use_fusion_emitters", False),)
 # restarts): unoptimised machine code compiles it in 5.0 s instead of 7.0 s, for about
 # 0.1 s more run time per fit of the bundled tracks.
 FIT_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
+# The closed-form `simulate`, whose event loop is one kernel (SMALL_LOOP_BYTES), with
+# LLVM's level-1 optimisation: 3 balls compile in 4.4 s instead of 5.2 s and run as fast
+# (310 vs 331 us; 10,000 balls 0.46 vs 0.44 s). The ODE path keeps level 3: at level 1
+# its steps run 20% slower.
+CLOSED_FORM_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 1),)
 
 
 @functools.cache

@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from . import _ode
-from ._config import jit, require_x64, top_level
+from ._config import CLOSED_FORM_COMPILE, jit, require_x64, top_level
 from ._ode import OdeSettings
 from ._params import Params, check_runtime, check_t_end
 from ._scene import Scene
@@ -207,7 +207,7 @@ def _check_effects(scene: Scene, params: Params) -> None:
             )
 
 
-@jit
+@jit(options=CLOSED_FORM_COMPILE)
 def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     batch = params.batch_shape
     if checks:
