@@ -170,6 +170,9 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         "jax": jax.__version__,
         "backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()],
+        # Whether XLA compiles small loops into one kernel (estim._config): off when JAX's
+        # backend started before estim was imported, or XLA_FLAGS set its own threshold.
+        "small_loops_as_kernels": bool(estim._config.SMALL_LOOPS_AS_KERNELS),
     }
     return result
 
@@ -196,7 +199,8 @@ def format_speed(r: dict) -> str:
         "gradient d(golf final x)/d(e, mu_t, vx0) = "
         + ", ".join(f"{v:.8f}" for v in r["gradient"].values()),
         f"machine: {r['machine']['cpu_count']} CPUs, {r['machine']['processor']}, "
-        f"jax {r['machine']['jax']} ({r['machine']['backend']}); median of {r['repeats']} calls",
+        f"jax {r['machine']['jax']} ({r['machine']['backend']}); median of {r['repeats']} calls; "
+        f"small loops as one kernel: {'yes' if r['machine'].get('small_loops_as_kernels') else 'NO'}",
     ]
     return "\n".join(lines)
 
