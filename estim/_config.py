@@ -20,9 +20,10 @@ jax.config.update("jax_enable_x64", True)
 # no library (dot, scatter, custom call), is instead compiled into one kernel. XLA's
 # default threshold, 1 KiB, leaves estim's loops out; 300 kB takes in the event loops of
 # a few balls and leaves out those of large batches, whose kernels are big enough to pay
-# for themselves. On the seed scene (2-core reference machine, jax 0.10.2): forward, 3
-# balls 599 -> 375 us; gradient (jacfwd) of the golf ball 442 -> 168 us; a 10,000-ball
-# batch unchanged; about 2 s more to compile `simulate` (docs/pages/speed.md).
+# for themselves. On the seed scene (`estim bench speed`, 2-core reference machine, jax
+# 0.10.2): forward, 3 balls 744 -> 357 us; gradient (jacfwd) of the golf ball 561 -> 171
+# us; a 10,000-ball batch about the same; `simulate` compiles in 4.3 s instead of 3.0 s
+# (docs/pages/speed.md).
 SMALL_LOOP_BYTES = 300_000
 _SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 
