@@ -86,9 +86,32 @@ def _met(key: str, value: float) -> bool:
     return {"le": value <= target, "lt": value < target, "ge": value >= target}[op]
 
 
+def restrict_cpus(n: int) -> None:
+    """Let this process (and the processes it starts) run on its first ``n`` allowed CPUs,
+    as ``taskset`` does. Only before JAX starts its backend: XLA sizes its thread pool to
+    the CPUs the process may use when the backend starts."""
+    if not hasattr(os, "sched_setaffinity"):
+        raise ValueError("--cpus needs os.sched_setaffinity (Linux); use the whole machine instead")
+    allowed = sorted(os.sched_getaffinity(0))
+    if not 1 <= n <= len(allowed):
+        raise ValueError(f"--cpus must lie in [1, {len(allowed)}] (the CPUs this process may use), got {n}")
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        raise ValueError("--cpus must be set before JAX starts its backend: run the bench in a fresh process")
+    os.sched_setaffinity(0, allowed[:n])
+
+
+def _cpus_used() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
 def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None = None,
-              seed: int = 0) -> dict:
-    """Measure the figures of ``estim bench speed`` and return them as a dict."""
+              seed: int = 0, cpus: int | None = None) -> dict:
+    """Measure the figures of ``estim bench speed`` and return them as a dict (on ``cpus``
+    CPUs if given: ``restrict_cpus``)."""
+    if cpus is not None:
+        restrict_cpus(cpus)
     scene_path = scene_path or default_scene_path()
     # First: the fresh-process first call, before this process compiles anything; then the
     # same with JAX's persistent compilation cache (as the estim command uses it), warmed
@@ -164,6 +187,8 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     result["reference"] = dict(REFERENCE)
     result["machine"] = {
         "cpu_count": os.cpu_count(),
+        # The CPUs this process may run on (``--cpus``); XLA's thread pool has as many threads.
+        "cpus_used": _cpus_used(),
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
         "python": platform.python_version(),
@@ -198,7 +223,8 @@ def format_speed(r: dict) -> str:
         f"import estim: {r['import_s']:.2f} s",
         "gradient d(golf final x)/d(e, mu_t, vx0) = "
         + ", ".join(f"{v:.8f}" for v in r["gradient"].values()),
-        f"machine: {r['machine']['cpu_count']} CPUs, {r['machine']['processor']}, "
+        f"machine: {r['machine']['cpu_count']} CPUs ({r['machine'].get('cpus_used', r['machine']['cpu_count'])} used), "
+        f"{r['machine']['processor']}, "
         f"jax {r['machine']['jax']} ({r['machine']['backend']}); median of {r['repeats']} calls; "
         f"small loops as one kernel: {'yes' if r['machine'].get('small_loops_as_kernels') else 'NO'}",
     ]

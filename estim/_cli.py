@@ -111,6 +111,10 @@ def build_parser() -> argparse.ArgumentParser:
     speed.add_argument("--repeats", type=_positive_int, default=200,
                        help="timed calls per figure (median; default 200)")
     speed.add_argument("--scene", default=None, help="scene file (default: the seed scene)")
+    speed.add_argument("--cpus", type=_positive_int, default=None,
+                       help="run on this many CPUs (Linux: the process's CPU affinity, set before "
+                            "JAX starts, as `taskset` does): shows what XLA's thread pool costs a "
+                            "small call (docs/pages/speed.md)")
     speed.set_defaults(func=_cmd_bench_speed)
     fitb = bsub.add_parser("fit", help="estim fit on the bundled tracks: cold, cached, steady",
                            description="Time `estim fit` on the bundled tracks from process "
@@ -380,7 +384,7 @@ def _format_simulation(out: dict) -> str:
 def _cmd_bench_speed(args) -> int:
     from ._bench import format_speed, run_speed
 
-    result = run_speed(batch=args.batch, repeats=args.repeats, scene_path=args.scene)
+    result = run_speed(batch=args.batch, repeats=args.repeats, scene_path=args.scene, cpus=args.cpus)
     if args.json:
         print(json.dumps(result))
     else:

@@ -170,6 +170,42 @@ def test_demo(capsys, tmp_path):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 
 
+def test_bench_speed_cpus_errors(capsys):
+    """``--cpus`` restricts the process before JAX starts; here (in-process) JAX has started,
+    so it is refused with a message, as is a count out of range, and nothing is timed."""
+    import os
+
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("needs os.sched_setaffinity (Linux)")
+    before = os.sched_getaffinity(0)
+    assert "before JAX starts its backend" in run_error(capsys, "bench", "speed", "--cpus", "1")
+    too_many = str(len(before) + 1)
+    assert "--cpus must lie in [1, " in run_error(capsys, "bench", "speed", "--cpus", too_many)
+    assert "--cpus" in run_error(capsys, "bench", "speed", "--cpus", "0")  # argparse: not positive
+    assert os.sched_getaffinity(0) == before
+
+
+def test_restrict_cpus_fresh_process():
+    """In a fresh process ``restrict_cpus(1)`` leaves one CPU to the process and to what it
+    starts (the bench's first-call subprocess), and JAX then runs there."""
+    import os
+
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("needs os.sched_setaffinity (Linux)")
+    code = (
+        "import os, subprocess, sys, json\n"
+        "from estim._bench import restrict_cpus\n"
+        "restrict_cpus(1)\n"
+        "import jax.numpy as jnp\n"
+        "child = subprocess.run([sys.executable, '-c', 'import os; print(len(os.sched_getaffinity(0)))'],\n"
+        "                       capture_output=True, text=True, check=True).stdout\n"
+        "print(json.dumps([len(os.sched_getaffinity(0)), int(child), float(jnp.ones(3).sum())]))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [1, 1, 3.0]
+
+
 @pytest.mark.slow
 def test_bench_speed_json(capsys):
     assert main(["bench", "speed", "--json", "--batch", "100", "--repeats", "3"]) == 0
@@ -179,6 +215,7 @@ def test_bench_speed_json(capsys):
         assert key in out
     assert set(out["targets"]) == {"forward_us", "gradient_us", "first_call_s", "batch_balls_per_s"}
     assert out["machine"]["cpu_count"] >= 1 and out["machine"]["jax"]
+    assert 1 <= out["machine"]["cpus_used"] <= out["machine"]["cpu_count"]
     # conftest imports estim before JAX starts its backend, so XLA took estim's threshold
     assert out["machine"]["small_loops_as_kernels"] is True
     np.testing.assert_allclose(list(out["gradient"].values()), GOLF_GRAD, atol=1e-7)
