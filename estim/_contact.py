@@ -268,13 +268,18 @@ def first_contact(
 
     # A blocked candidate is dropped and the next earliest taken: at a corner of a box at
     # most three (two bevels and the corner face) can be blocked at once. (A loop, not
-    # three unrolled copies: the event loop compiles as one kernel, 0.7 s faster so.)
-    def drop_blocked(_, tau):
-        t_min, face = earliest(tau)
-        return jnp.where((jnp.arange(tau.shape[0]) == face) & blocked(face, t_min), jnp.inf, tau)
+    # three unrolled copies: the event loop compiles as one kernel, 0.7 s faster so; and one
+    # that stops at the first candidate not blocked, which for one ball is the first.)
+    def is_blocked(c):
+        rounds, tau, t_min, face = c
+        return (rounds < 3) & blocked(face, t_min)
 
-    tau = jax.lax.fori_loop(0, 3, drop_blocked, tau)
-    t_min, face = earliest(tau)
+    def drop(c):
+        rounds, tau, t_min, face = c
+        tau = jnp.where(jnp.arange(tau.shape[0]) == face, jnp.inf, tau)
+        return (rounds + 1, tau) + earliest(tau)
+
+    _, _, t_min, face = jax.lax.while_loop(is_blocked, drop, (0,) + (tau,) + earliest(tau))
     return t_min, jnp.where(jnp.isfinite(t_min), face, -1)
 
 

@@ -9,8 +9,9 @@ of the used slots plus at most one chunk, and ``S / C`` branch decisions.
 
 The skip is a real branch only where the number of used slots is one number for the whole
 batch: inside ``vmap`` a per-ball count turns ``cond`` into ``select``, which runs both
-branches (correct, no saving). So the entry points plan all balls first and pass the batch's
-largest count. The scan stays a scan, so reverse mode works as before.
+branches (correct, no saving). So the ODE path plans all balls first and passes the batch's
+largest count; the closed-form path simulates one ball at a time (``estim._simulate``) and
+passes the ball's own. The scan stays a scan, so reverse mode works as before.
 """
 
 from __future__ import annotations

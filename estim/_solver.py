@@ -137,21 +137,29 @@ def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segme
     v_b_post = jnp.where(d.reason == CONTACT, contact_velocity(v_b, n_face, a, e, mu_t), v_b)
 
     # TRAIN: a closed-form series of bounces, to bounce n, to its accumulation, or to t_end.
+    # (lax.cond: for one ball a branch, so a flight skips the series' closed forms; under
+    # vmap both branches run, and the guards below keep the one not taken finite.)
     is_train = d.kind == TRAIN
     up = jnp.array([0.0, 0.0, 1.0])
-    n_sup = jnp.where(is_train, face_normal(faces, jnp.maximum(d.support, 0)), up)
-    s = series(jnp.where(is_train, v, up), n_sup, a)  # a finite series off-branch: no NaN cotangents
-    n_tr = jnp.where(is_train, d.n, 1.0)
-    at_end = d.reason == END
-    # The end of the whole series is used only when it ends before t_end; a series cut at
-    # t_end may be one that never ends (e = 1, n = inf: duration T0 * inf, whose derivative
-    # w.r.t. T0 is inf and turned the discarded branch's zero cotangent into NaN in
-    # reverse mode), so it is evaluated at a harmless n = 1 there.
-    duration, travel, v_full = series_end(s, jnp.where(at_end, 1.0, n_tr), e, mu_t)
-    tau_t = jnp.where(at_end, t_end - t, jnp.where(jnp.isfinite(duration), duration, 0.0))
-    tr_travel, tr_vel = state_at(s, tau_t, e, mu_t, n_tr)
-    p_tr = p + jnp.where(at_end, tr_travel, travel)
-    v_tr_end = jnp.where(at_end, tr_vel, v_full)
+
+    def train(_):
+        n_sup = jnp.where(is_train, face_normal(faces, jnp.maximum(d.support, 0)), up)
+        s = series(jnp.where(is_train, v, up), n_sup, a)  # a finite series off-branch: no NaN cotangents
+        n_tr = jnp.where(is_train, d.n, 1.0)
+        at_end = d.reason == END
+        # The end of the whole series is used only when it ends before t_end; a series cut at
+        # t_end may be one that never ends (e = 1, n = inf: duration T0 * inf, whose derivative
+        # w.r.t. T0 is inf and turned the discarded branch's zero cotangent into NaN in
+        # reverse mode), so it is evaluated at a harmless n = 1 there.
+        duration, travel, v_full = series_end(s, jnp.where(at_end, 1.0, n_tr), e, mu_t)
+        tau_t = jnp.where(at_end, t_end - t, jnp.where(jnp.isfinite(duration), duration, 0.0))
+        tr_travel, tr_vel = state_at(s, tau_t, e, mu_t, n_tr)
+        return tau_t, p + jnp.where(at_end, tr_travel, travel), jnp.where(at_end, tr_vel, v_full), n_sup
+
+    def no_train(_):
+        return 0.0 * t, p, v, up + 0.0 * v
+
+    tau_t, p_tr, v_tr_end, n_sup = jax.lax.cond(is_train, train, no_train, None)
 
     tau = jnp.where(is_train, tau_t, tau_b)
     unused = d.kind == UNUSED
@@ -172,30 +180,39 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     post = seg.v1_post
     settled = (jnp.abs(inner(post, n_face)) <= REST_SPEED) & (inner(n_face, a) < 0)
     up = n_face[2] > 1.0 - 1e-12
-    # A bounce series on an upward face: how many bounces provably land on it.
-    w = post[2]
-    u = post.at[2].set(0.0)
-    t_flight = 2.0 * w / g
-    reach = train_reach(faces, face, seg.p1, u, w * w / (2.0 * g))
-    speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
-    y = jnp.where(speed > 0, reach / jnp.where(speed > 0, speed * t_flight, 1.0), jnp.inf)
-    n_train = jnp.where(reach < 0, 0.0, geometric_count(e * mu_t, y))
-    # On an inclined face that supports the ball (an edge bevel) only a whole Zeno series is
-    # summed, when its accumulation point and its first landing lie on the face.
     inclined = (inner(n_face, a) < 0) & ~up & (e < 1)
-    n_inc = jnp.where(inclined, n_face, jnp.array([0.0, 0.0, 1.0]))
-    s = series(jnp.where(inclined, post, n_inc), n_inc, a)
-    _, x_inf, _ = series_end(s, jnp.inf, e, mu_t)
-    _, x_one, _ = series_end(s, 1.0, e, mu_t)
-    row = faces.row[face]
-    lands = on_face(seg.p1 + x_inf, row[CENTRE], row[HALF], faces.radius) & on_face(
-        seg.p1 + x_one, row[CENTRE], row[HALF], faces.radius
+
+    def on_upward(_):
+        """A bounce series on an upward face: how many bounces provably land on it."""
+        w = post[2]
+        u = post.at[2].set(0.0)
+        t_flight = 2.0 * w / g
+        reach = train_reach(faces, face, seg.p1, u, w * w / (2.0 * g))
+        speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
+        y = jnp.where(speed > 0, reach / jnp.where(speed > 0, speed * t_flight, 1.0), jnp.inf)
+        return jnp.where(reach < 0, 0.0, geometric_count(e * mu_t, y))
+
+    def on_bevel(_):
+        """On an inclined face that supports the ball (an edge bevel) only a whole Zeno series
+        is summed, when its accumulation point and its first landing lie on the face ..."""
+        n_inc = jnp.where(inclined, n_face, jnp.array([0.0, 0.0, 1.0]))
+        s = series(jnp.where(inclined, post, n_inc), n_inc, a)
+        _, x_inf, _ = series_end(s, jnp.inf, e, mu_t)
+        _, x_one, _ = series_end(s, 1.0, e, mu_t)
+        row = faces.row[face]
+        lands = on_face(seg.p1 + x_inf, row[CENTRE], row[HALF], faces.radius) & on_face(
+            seg.p1 + x_one, row[CENTRE], row[HALF], faces.radius
+        )
+        # ... and nothing else in its way (a ball bouncing on a bevel into a riser beside it
+        # is followed bounce by bounce instead).
+        t_total = s.period / jnp.where(inclined, 1.0 - e, 1.0)
+        clear = series_clear(faces, face, seg.p1, post, t_total, g)
+        return jnp.where(lands & clear, jnp.inf, 0.0)
+
+    # (lax.cond: for one ball only the count its face needs is computed.)
+    n_train = jax.lax.cond(
+        inclined, on_bevel, lambda _: jax.lax.cond(up, on_upward, lambda _: jnp.float64(0.0), None), None
     )
-    # ... and nothing else in its way (a ball bouncing on a bevel into a riser beside it is
-    # followed bounce by bounce instead).
-    t_total = s.period / jnp.where(inclined, 1.0 - e, 1.0)
-    clear = series_clear(faces, face, seg.p1, post, t_total, g)
-    n_train = jnp.where(inclined, jnp.where(lands & clear, jnp.inf, 0.0), n_train)
     # A wall hit while sliding keeps the ball on its face.
     if_support = face_normal(faces, jnp.maximum(d.support, 0))
     stays = (d.kind == SLIDE) & (jnp.abs(inner(n_face, if_support)) < 1e-12)
@@ -225,25 +242,31 @@ def _decide_end(faces: Faces, gravity, params, t, p, v, kind, support, n, t_end)
     e, mu_t = params.e, params.mu_t
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
-    slide_v, slide_a = _slide_frame(faces, support, v, a)
-    sliding = kind == SLIDE
-    v0 = jnp.where(sliding, slide_v, v)
-    acc = jnp.where(sliding, slide_a, a)
-    # A slide's own face, and after sliding off a face that face, are excluded: the ball is
-    # on its plane, pressed towards it, but beyond its edge.
-    tau_c, face = first_contact(faces, p, v0, acc, support)
-    tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
-    tau_b = jnp.minimum(tau_c, tau_x)
-    reason_b = jnp.where(t + tau_b >= t_end, END, jnp.where(tau_c <= tau_x, CONTACT, EXIT))
-    face_b = jnp.where(reason_b == CONTACT, face, -1)
-    up = jnp.array([0.0, 0.0, 1.0])
-    n_sup = jnp.where(kind == TRAIN, face_normal(faces, jnp.maximum(support, 0)), up)
-    duration, _, _ = series_end(series(jnp.where(kind == TRAIN, v, up), n_sup, a), jnp.where(kind == TRAIN, n, 1.0), e, mu_t)
-    reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
     is_train = kind == TRAIN
-    reason = jnp.where(is_train, reason_t, reason_b)
-    face = jnp.where(is_train, -1, face_b)
-    return reason.astype(jnp.int32), face.astype(jnp.int32)
+
+    def ballistic_end(_):
+        slide_v, slide_a = _slide_frame(faces, support, v, a)
+        sliding = kind == SLIDE
+        v0 = jnp.where(sliding, slide_v, v)
+        acc = jnp.where(sliding, slide_a, a)
+        # A slide's own face, and after sliding off a face that face, are excluded: the ball
+        # is on its plane, pressed towards it, but beyond its edge.
+        tau_c, face = first_contact(faces, p, v0, acc, support)
+        tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
+        tau_b = jnp.minimum(tau_c, tau_x)
+        reason_b = jnp.where(t + tau_b >= t_end, END, jnp.where(tau_c <= tau_x, CONTACT, EXIT))
+        return reason_b.astype(jnp.int32), jnp.where(reason_b == CONTACT, face, -1).astype(jnp.int32)
+
+    def train_end(_):
+        up = jnp.array([0.0, 0.0, 1.0])
+        n_sup = jnp.where(is_train, face_normal(faces, jnp.maximum(support, 0)), up)
+        s = series(jnp.where(is_train, v, up), n_sup, a)
+        duration, _, _ = series_end(s, jnp.where(is_train, n, 1.0), e, mu_t)
+        reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
+        return reason_t.astype(jnp.int32), jnp.int32(-1)
+
+    # (lax.cond: for one ball only the end its segment's kind needs is computed.)
+    return jax.lax.cond(is_train, train_end, ballistic_end, None)
 
 
 class Plan(eqx.Module):
@@ -297,12 +320,16 @@ def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
         return d, seg, _next_structure(faces, g, params, seg, d)
 
     def cond(carry):
-        k, done = carry[0], carry[-2]
+        k, done = carry[0], carry[-3]
         return (k < S) & ~jnp.all(done)
 
     def body(carry):
-        k, count, state, done, record = carry
-        d, seg, following = jax.vmap(step)(params, t_end, *state)
+        k, count, state, done, record, (params, t_end) = carry
+        if batch == 1:  # one ball: no vmap, so that its segment's branches (lax.cond) are branches
+            one = step(*jax.tree.map(lambda x: x[0], (params, t_end) + state))
+            d, seg, following = jax.tree.map(lambda x: x[None], one)
+        else:
+            d, seg, following = jax.vmap(step)(params, t_end, *state)
         active = ~done
 
         def keep(new, old):
@@ -311,11 +338,13 @@ def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
         d = jax.tree.map(keep, d, d0)  # a finished ball's slots stay UNUSED
         record = jax.tree.map(lambda r, x: r.at[:, k].set(x), record, (d, seg))
         state = jax.tree.map(keep, (seg.t1, seg.p1, seg.v1_post) + following, state)
-        return k + 1, count + active, state, done | (active & (d.reason == END)), record
+        # The parameters go round the loop through an optimization barrier, so that XLA does
+        # not hoist their share of the work out of it (as some 70 separate kernels).
+        return k + 1, count + active, state, done | (active & (d.reason == END)), record, jax.lax.optimization_barrier((params, t_end))
 
     state = (zeros, params.position, params.velocity, ints + FLIGHT, ints - 1, zeros)
-    init = (jnp.int32(0), ints, state, jnp.zeros(batch, bool), record)
-    _, count, _, done, (decisions, segments) = jax.lax.while_loop(cond, body, init)
+    init = (jnp.int32(0), ints, state, jnp.zeros(batch, bool), record, (params, t_end))
+    _, count, _, done, (decisions, segments), _ = jax.lax.while_loop(cond, body, init)
     # Unused slots hold the final state, so that sampling past the last segment is exact.
     last = jax.tree.map(lambda x: x[jnp.arange(batch), jnp.maximum(count - 1, 0)], segments)
     fill = Segment(last.t1, last.p1, last.v1_post, z3, last.t1, last.p1, last.v1_post, last.v1_post, z3)

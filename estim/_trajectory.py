@@ -146,12 +146,14 @@ def sample(seg: Segment, d: Decision, e, mu_t, g, t):
     return p.reshape(shape + (3,)), v.reshape(shape + (3,))
 
 
-def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
-    """Map event slots to segments: which segment, which bounce of a train."""
+def _listed(seg: Segment, d: Decision, e, g, max_events: int):
+    """Events of each segment (elementwise: one segment or many): the bounces of a train
+    that are listed, and the number of event slots the segment takes (capped, so that slots
+    stay int32 indices; a count past max_events only marks the list truncated)."""
     is_train = d.kind == TRAIN
     contact = (d.reason == CONTACT) & (d.kind != UNUSED)
-    a_n = jnp.where(is_train, seg.normal[:, 2], 1.0) * -g
-    w = jnp.where(is_train, jnp.sum(seg.v0 * seg.normal, axis=1), 1.0)
+    a_n = jnp.where(is_train, seg.normal[..., 2], 1.0) * -g
+    w = jnp.where(is_train, inner(seg.v0, seg.normal), 1.0)
     t_flight = 2.0 * w / -a_n
     # Bounces of a train: all n when it ran to bounce n; up to t_end when cut there ...
     before_end = geometric_count(e, (seg.t1 - seg.t0) / t_flight)
@@ -164,12 +166,21 @@ def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
     bounces = jnp.where(jnp.isfinite(d.n), bounces, jnp.minimum(bounces, listable))
     settles = is_train & (d.reason == SETTLE)
     total = jnp.where(contact, 1.0, jnp.where(is_train, bounces, 0.0) + settles)
-    # Slots are int32 indices; a count past max_events only marks the list truncated.
-    capped = jnp.minimum(total, max_events + 1.0)
+    return bounces, jnp.minimum(total, max_events + 1.0)
+
+
+def _slot_of(ends, capped, i):
+    """Segment k of event slot i (float), and the event's number within it (from 1)."""
+    k = jnp.clip(jnp.searchsorted(ends, i, side="right"), 0, ends.shape[0] - 1)
+    return k, i - (ends - capped)[k] + 1.0
+
+
+def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
+    """Map event slots to segments: which segment, which bounce of a train."""
+    bounces, capped = _listed(seg, d, e, g, max_events)
     ends = jnp.cumsum(capped)
     i = jnp.arange(max_events, dtype=jnp.float64)
-    k = jnp.clip(jnp.searchsorted(ends, i, side="right"), 0, ends.shape[0] - 1)
-    local = i - (ends - capped)[k] + 1.0  # bounce number within a train, from 1
+    k, local = _slot_of(ends, capped, i)
     train_slot = d.kind[k] == TRAIN
     settle_slot = train_slot & (d.reason[k] == SETTLE) & (local > bounces[k])
     bounce_no = jnp.where(train_slot & ~settle_slot, local, 1.0)
@@ -186,33 +197,78 @@ def _bounce(v0, normal, t0, p0, j, e, mu_t, g):
     return t0 + t, p0 + x, pre, post, (t0 + t_s, p0 + x_s, v_s)
 
 
-def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Events:
-    """Expand the segments of one ball into its list of contact events."""
-    k, j, valid, train_slot, settle_slot, total = _event_slots(seg, d, e, g, max_events)
-    s = jax.tree.map(lambda x: x[k], seg)
-    bt, bp, bpre, bpost, _ = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, 0, None, None, None))(
-        s.v0, s.normal, s.t0, s.p0, j, e, mu_t, g
-    )
+def _event(s: Segment, d: Decision, j, train_slot, settle_slot, valid, e, mu_t, g):
+    """One listed event (one slot): ``(t, position, pre, post, face, kind)``, padding where
+    ``valid`` is false. ``s`` and ``d`` are its segment; ``j`` its bounce number in a train."""
+    bt, bp, bpre, bpost, _ = _bounce(s.v0, s.normal, s.t0, s.p0, j, e, mu_t, g)
     plain = ~train_slot | settle_slot
     t = jnp.where(plain, s.t1, bt)
-    pos = jnp.where(plain[:, None], s.p1, bp)
-    pre = jnp.where(plain[:, None], s.v1, bpre)
-    post = jnp.where(plain[:, None], s.v1_post, bpost)
-    face = jnp.where(train_slot, d.support[k], d.face[k])
+    pos = jnp.where(plain, s.p1, bp)
+    pre = jnp.where(plain, s.v1, bpre)
+    post = jnp.where(plain, s.v1_post, bpost)
+    face = jnp.where(train_slot, d.support, d.face)
     # A contact without normal speed is a landing to rest, not an impact: an impact changes
     # the velocity by at least (1 + e) times the normal speed.
-    kind = jnp.where(settle_slot | (jnp.linalg.norm(pre - post, axis=1) <= REST_SPEED), REST, IMPACT)
-    zero = jnp.zeros_like(pos)
-    return Events(
-        t=jnp.where(valid, t, jnp.inf),
-        position=jnp.where(valid[:, None], pos, zero),
-        velocity_pre=jnp.where(valid[:, None], pre, zero),
-        velocity_post=jnp.where(valid[:, None], post, zero),
-        face=jnp.where(valid, face, -1).astype(jnp.int32),
-        kind=jnp.where(valid, kind, -1).astype(jnp.int32),
-        count=jnp.minimum(total, max_events).astype(jnp.int32),
-        truncated=total > max_events,
+    kind = jnp.where(settle_slot | (jnp.linalg.norm(pre - post) <= REST_SPEED), REST, IMPACT)
+    zero = jnp.zeros(3)
+    return (
+        jnp.where(valid, t, jnp.inf),
+        jnp.where(valid, pos, zero),
+        jnp.where(valid, pre, zero),
+        jnp.where(valid, post, zero),
+        jnp.where(valid, face, -1).astype(jnp.int32),
+        jnp.where(valid, kind, -1).astype(jnp.int32),
     )
+
+
+def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Events:
+    """Expand the segments of one ball into its list of contact events (every slot at once:
+    vectorises over slots, and over the balls of a batch under ``vmap``)."""
+    k, j, valid, train_slot, settle_slot, total = _event_slots(seg, d, e, g, max_events)
+    s, dk = jax.tree.map(lambda x: x[k], (seg, d))
+    event = jax.vmap(_event, in_axes=(0, 0, 0, 0, 0, 0, None, None, None))
+    fields = event(s, dk, j, train_slot, settle_slot, valid, e, mu_t, g)
+    return Events(*fields, count=jnp.minimum(total, max_events).astype(jnp.int32), truncated=total > max_events)
+
+
+def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_segments) -> Events:
+    """``list_events`` slot by slot, doing the work of the used segments and the listed
+    events only (a ``lax.scan`` whose unused items skip their work with ``lax.cond``).
+
+    For a ball in a loop compiled as one kernel (``estim._simulate``), where nothing is
+    vectorised and every slot costs its closed forms: the seed's balls list 4 to 10 of 64
+    events. Under ``vmap`` the skips become selects and both branches run: there use
+    ``list_events``. The same closed forms (``_listed``, ``_event``), so the same values.
+    """
+    n_seg = d.kind.shape[0]
+
+    def count(_, k):
+        one = jax.tree.map(lambda x: x[k], (seg, d))
+        return None, jax.lax.cond(k < n_segments, lambda sd: _listed(*sd, e, g, max_events),
+                                  lambda sd: (jnp.float64(0.0), jnp.float64(0.0)), one)
+
+    _, (bounces, capped) = jax.lax.scan(count, None, jnp.arange(n_seg))
+    ends = jnp.cumsum(capped)
+    total = ends[-1]
+
+    def listed(i):
+        k, local = _slot_of(ends, capped, i)
+        s, dk = jax.tree.map(lambda x: x[k], (seg, d))
+        train_slot = dk.kind == TRAIN
+        settle_slot = train_slot & (dk.reason == SETTLE) & (local > bounces[k])
+        j = jnp.where(train_slot & ~settle_slot, local, 1.0)
+        return _event(s, dk, j, train_slot, settle_slot, True, e, mu_t, g)
+
+    def padding(i):
+        zero, none = jnp.zeros(3), jnp.int32(-1)
+        return jnp.inf + 0.0 * i, zero, zero, zero, none, none
+
+    def slot(_, i):
+        i = i.astype(jnp.float64)
+        return None, jax.lax.cond(i < total, listed, padding, i)
+
+    _, fields = jax.lax.scan(slot, None, jnp.arange(max_events))
+    return Events(*fields, count=jnp.minimum(total, max_events).astype(jnp.int32), truncated=total > max_events)
 
 
 def event_flights(seg: Segment, d: Decision, e, mu_t, g, max_events: int):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import (
+    BATCH_ROUNDING,
     NT,
     STAIRS_XML,
     B,
@@ -139,7 +140,8 @@ def test_every_ball_reaches_t_end(stairs, batch):
 @given(batch=batches(), where=st.integers(0, B - 1))
 def test_alone_or_in_a_batch_is_identical(stairs, batch, where):
     """Ball 0 simulated alone (batch shape ()) and at position ``where`` of a batch of B
-    gives bit-identical arrays."""
+    gives the same arrays: faces, kinds and counts bit for bit, times and states to
+    rounding (conftest.BATCH_ROUNDING)."""
     e, mu, r, pos, vel = batch
     alone = estim.simulate(
         stairs,
@@ -167,7 +169,7 @@ def test_alone_or_in_a_batch_is_identical(stairs, batch, where):
         (alone.complete, traj.complete[i]),
     ]
     for a, b in pairs:
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=BATCH_ROUNDING, atol=BATCH_ROUNDING)
 
 
 @settings(
@@ -307,7 +309,7 @@ def test_random_scenes_jacobian_is_finite(case):
 @given(case=scene_and_batch(max_size=B), where=st.integers(0, B - 1))
 def test_random_scenes_alone_or_in_a_batch_is_identical(case, where):
     """A ball of a random scene simulated alone (batch shape ()) and at any position of a
-    batch gives bit-identical arrays."""
+    batch gives the same arrays (faces bit for bit, times and states to rounding)."""
     scene, (e, mu, r, pos, vel) = case
     i = min(where, len(e) - 1)
     alone = estim.simulate(scene, estim.Params(e[i], mu[i], r[i], pos[i], vel[i]), T_END,
@@ -322,4 +324,4 @@ def test_random_scenes_alone_or_in_a_batch_is_identical(case, where):
         (alone.events.face, traj.events.face[i]),
         (alone.complete, traj.complete[i]),
     ):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=BATCH_ROUNDING, atol=BATCH_ROUNDING)
