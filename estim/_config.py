@@ -14,16 +14,16 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-# XLA:CPU runs a program as a sequence of kernels, at a fixed cost of about 0.25 us each,
-# and an event loop's body is a few hundred small kernels per iteration. A while loop
-# (a lax.while_loop or lax.scan) that touches fewer bytes than this threshold, and calls
-# no library (dot, scatter, custom call), is instead compiled into one kernel. XLA's
-# default threshold, 1 KiB, leaves estim's loops out; 300 kB takes in the event loops of
-# a few balls and leaves out those of large batches, whose kernels are big enough to pay
-# for themselves. On the seed scene (`estim bench speed`, 2-core reference machine, jax
-# 0.10.2): forward, 3 balls 744 -> 357 us; gradient (jacfwd) of the golf ball 561 -> 171
-# us; a 10,000-ball batch about the same; `simulate` compiles in 4.3 s instead of 3.0 s
-# (docs/pages/speed.md).
+# XLA:CPU runs a program as a sequence of kernels, each at a fixed cost, and an event
+# loop's body is a few hundred small kernels per iteration. A while loop (a lax.while_loop
+# or lax.scan) that touches fewer bytes per trip than this threshold, and calls no library
+# (dot, scatter, custom call), is instead compiled into one kernel. XLA's default
+# threshold, 1 KiB, leaves estim's loops out; at 300 kB the closed-form `simulate` (one
+# loop over balls, estim._simulate) is one kernel for any number of balls, and so is the
+# ODE path's step loop for a single ball. Measured with `estim bench speed` (2-core
+# reference machine, jax 0.10.2) when the loops first became kernels: forward, 3 balls
+# 744 -> 357 us; gradient (jacfwd) of the golf ball 561 -> 171 us; figures since then in
+# docs/pages/speed.md.
 SMALL_LOOP_BYTES = 300_000
 _SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 

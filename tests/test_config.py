@@ -93,7 +93,20 @@ def test_event_loops_compile_to_one_kernel():
         return replay(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3, decisions).p1[-1, 0]
 
     grad_hlo = jax.jit(jax.jacfwd(final_x)).lower(jnp.float64(0.7)).compile().as_text()
-    for hlo in (plan_hlo, grad_hlo):
+
+    # simulate itself: the three seed balls, one at a time in a loop (estim._simulate), and
+    # the jacfwd of the golf ball's final x through it.
+    sim_hlo = jax.jit(lambda p: estim.simulate(scene, p, 2.3)).lower(seed_params(scene)).compile().as_text()
+
+    def sim_final_x(e):
+        return estim.simulate(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3).final.position[0]
+
+    sim_grad_hlo = jax.jit(jax.jacfwd(sim_final_x)).lower(jnp.float64(0.7)).compile().as_text()
+    for hlo in (plan_hlo, grad_hlo, sim_hlo, sim_grad_hlo):
         owners = _loop_owners(hlo)
         assert owners, "no while loop found"
         assert all(name.endswith("_computation") for name in owners), owners
+    # The forward call is one such kernel: the loop over balls, with everything inside.
+    entry = sim_hlo[sim_hlo.index("\nENTRY"):]
+    entry = entry[: entry.index("\n}\n")]
+    assert len(re.findall(r"= .* call\(", entry)) == 1, "simulate is not one loop kernel"
