@@ -14,7 +14,7 @@ from ._config import CLOSED_FORM_COMPILE, jit, require_x64, top_level
 from ._ode import OdeSettings
 from ._params import Params, check_runtime, check_t_end
 from ._scene import Scene
-from ._solver import Plan, plan, segments_of
+from ._solver import plan, segments_of
 from ._trajectory import (
     ClosedFormSolution,
     State,
@@ -223,19 +223,20 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     g = scene.gravity
 
     # Ball by ball, in one loop that XLA:CPU compiles as a single kernel (estim._config):
-    # each ball's plan, its samples, and only the events it lists (on the seed scene 4 to
-    # 10 of 64 slots); a ball's derivatives replay its own segments. With one ball at a
+    # each ball's plan, its samples, and only the events it lists (on the seed scene 9, 6
+    # and 4 of 64 slots); a ball's derivatives replay its own segments. With one ball at a
     # time the branches of a segment (lax.cond in estim._solver) are branches, not both
-    # sides computed and one selected as under vmap. (Vectorised over balls instead, the
-    # seed's 3 balls took 335 us and 10,000 balls 309 ms; this way 250 us and 174 ms:
-    # docs/pages/speed.md.) A ball's result does not depend on the batch it is in.
+    # sides computed and one selected as under vmap. Vectorised over balls, the seed's 3
+    # balls took 329 us, 10,000 balls 309 ms; this way 235 us and 174 ms (docs/pages/
+    # speed.md). A ball's result does not depend on the other balls of its batch.
     def ball(prm):
         pl = plan(scene, prm, t_end, max_segments)
-
-        def events(segments):
-            return list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
-
-        return _expand(scene, prm, pl, t_end, ts, pl.n_segments, events)
+        segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
+        pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, g, ts)
+        events = list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
+        last = jnp.maximum(pl.n_segments - 1, 0)
+        final = State(t_end, segments.p1[last], segments.v1_post[last])
+        return pos, vel, events, final, segments, pl.decisions, pl.complete
 
     out = jax.lax.map(ball, flat)
     pos, vel, events, final, segments, decisions, complete = out
@@ -261,17 +262,6 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
         complete=unflat(complete),
         solution=solution,
     )
-
-
-def _expand(scene, prm, pl: Plan, t_end, ts, n_used, list_events_of):
-    """One ball's samples, events (``list_events_of(segments)``), final state and dense
-    solution from its plan; derivatives replay its first ``n_used`` segments."""
-    segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, n_used)
-    pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, scene.gravity, ts)
-    events = list_events_of(segments)
-    last = jnp.maximum(pl.n_segments - 1, 0)
-    final = State(t_end, segments.p1[last], segments.v1_post[last])
-    return pos, vel, events, final, segments, pl.decisions, pl.complete
 
 
 def _check_outside(scene: Scene, params: Params) -> None:

@@ -236,9 +236,10 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
     events only (a ``lax.scan`` whose unused items skip their work with ``lax.cond``).
 
     For a ball in a loop compiled as one kernel (``estim._simulate``), where nothing is
-    vectorised and every slot costs its closed forms: the seed's balls list 4 to 10 of 64
-    events. Under ``vmap`` the skips become selects and both branches run: there use
-    ``list_events``. The same closed forms (``_listed``, ``_event``), so the same values.
+    vectorised and every slot costs its closed forms: the seed's balls list 9, 6 and 4 of
+    64 events. Under ``vmap`` the skips become selects and both branches run: there use
+    ``list_events``. The same closed forms (``_listed``, ``_event``), so the same values (to
+    rounding: compiled differently, multiply-adds may be fused differently).
     """
     n_seg = d.kind.shape[0]
 
@@ -261,7 +262,7 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
 
     def padding(i):
         zero, none = jnp.zeros(3), jnp.int32(-1)
-        return jnp.inf + 0.0 * i, zero, zero, zero, none, none
+        return jnp.full((), jnp.inf), zero, zero, zero, none, none
 
     def slot(_, i):
         i = i.astype(jnp.float64)
