@@ -49,9 +49,9 @@ SMALL_LOOPS_AS_KERNELS = _set_small_loop_threshold()
 # TRACING: JAX traces a Python function at every call, and a first call of `simulate`
 # spends about a second tracing. The closed forms that a program calls dozens of times
 # (geometric sums, powers, entering times, a flight's start) are wrapped in `jax.jit`, so
-# that each is traced once per signature: `simulate` on the seed scene traces in 0.7 s
-# instead of 1.0 s, its `jacfwd` in 1.5 s instead of 2.7 s. The compiled code is the same
-# (XLA inlines the calls).
+# that each is traced once per signature (when introduced: `simulate` on the seed scene
+# traced in 0.7 s instead of 1.0 s, its `jacfwd` in 1.5 s instead of 2.7 s). The compiled
+# code is the same (XLA inlines the calls).
 
 
 def require_x64() -> None:
@@ -98,10 +98,11 @@ FAST_COMPILE = (("xla_cpu_use_fusion_emitters", False),)
 # restarts): unoptimised machine code compiles it in 5.0 s instead of 7.0 s, for about
 # 0.1 s more run time per fit of the bundled tracks.
 FIT_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
-# The closed-form `simulate`, whose event loop is one kernel (SMALL_LOOP_BYTES), with
-# LLVM's level-1 optimisation: 3 balls compile in 4.4 s instead of 5.2 s and run as fast
-# (310 vs 331 us; 10,000 balls 0.46 vs 0.44 s). The ODE path keeps level 3: at level 1
-# its steps run 20% slower.
+# The closed-form `simulate`, one loop kernel (SMALL_LOOP_BYTES), with LLVM's level-1
+# optimisation. Chosen when its planning loop alone was a kernel (3 balls compiled in 4.4 s
+# instead of 5.2 s, ran as fast); as one loop over balls, levels 1 and 3 are within noise
+# of each other (one CPU, two runs each: compile 2.4-2.8 s, 3 balls 145-157 us, 10,000
+# balls 151-174 ms). The ODE path keeps level 3: at level 1 its steps run 20% slower.
 CLOSED_FORM_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 1),)
 
 
@@ -143,4 +144,3 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
         return top(*args, **kwargs)
 
     return call
-

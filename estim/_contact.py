@@ -279,7 +279,7 @@ def first_contact(
         tau = jnp.where(jnp.arange(tau.shape[0]) == face, jnp.inf, tau)
         return (rounds + 1, tau) + earliest(tau)
 
-    _, _, t_min, face = jax.lax.while_loop(is_blocked, drop, (0,) + (tau,) + earliest(tau))
+    _, _, t_min, face = jax.lax.while_loop(is_blocked, drop, (jnp.int32(0), tau) + earliest(tau))
     return t_min, jnp.where(jnp.isfinite(t_min), face, -1)
 
 

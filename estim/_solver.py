@@ -280,77 +280,44 @@ class Plan(eqx.Module):
 
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """Find the discrete structure of one ball's solution (no gradients flow through this
-    pass). For many balls at once, ``plan_batch``."""
-    one = jax.tree.map(lambda x: x[None], params)
-    return jax.tree.map(lambda x: x[0], plan_batch(scene, one, t_end, max_segments))
-
-
-def plan_batch(scene: Scene, params, t_end, max_segments: int) -> Plan:
-    """``plan`` for a batch of balls: every field of ``params`` has one leading batch axis.
-
-    One loop for the batch, rather than ``vmap`` of a loop per ball: a vmapped while loop
-    selects every carried value between its old and new state at every iteration, the
-    ``(balls, max_segments)`` record of segments included (planning 10,000 balls took
-    0.87 s that way, 0.61 s this way). Here the loop writes one column of the record per
-    iteration, and all balls share one face table.
-    """
-    scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
+    pass): a ``lax.while_loop`` over its segments, writing one slot of the record per
+    iteration. One ball, not a batch: ``estim._simulate`` runs it for each ball inside its
+    loop over balls, so that the branches of a segment (``lax.cond``) are branches."""
+    scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
     g = scene.gravity
-    batch = params.e.shape[0]
-    table = faces_for(scene, jnp.float64(0.0))  # one table for every ball (estim._contact.Faces)
-    t_end = jnp.broadcast_to(t_end, (batch,))
+    table = faces_for(scene, jnp.float64(0.0))  # the ball's radius is attached in the loop
     S = max_segments
-    zeros = jnp.zeros(batch)
-    ints = jnp.zeros(batch, jnp.int32)
-    d0 = Decision(ints + UNUSED, ints - 1, zeros, ints + END, ints - 1)
+    d0 = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.float64(0.0), jnp.int32(END), jnp.int32(-1))
+    zero, z3 = jnp.float64(0.0), jnp.zeros(3)
+    blank = Segment(zero, z3, z3, z3, zero, z3, z3, z3, z3)  # each slot is written, or filled below
+    record = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), (d0, blank))
 
-    def faces_of(radius):
-        return eqx.tree_at(lambda f: f.radius, table, radius)
+    def cond(carry):
+        k, _, done, _, _ = carry
+        return (k < S) & ~done
 
-    z3 = jnp.zeros((batch, 3))
-    blank = Segment(zeros, z3, z3, z3, zeros, z3, z3, z3, z3)  # each slot is written, or filled below
-    record = jax.tree.map(lambda x: jnp.broadcast_to(x[:, None], (batch, S) + x.shape[1:]), (d0, blank))
-
-    def step(params, t_end, t, p, v, kind, support, n):
-        """One segment of one ball: how it ends, its closed form, what follows it."""
-        faces = faces_of(params.radius)
+    def body(carry):
+        k, (t, p, v, kind, support, n), _, record, (params, t_end) = carry
+        faces = eqx.tree_at(lambda f: f.radius, table, params.radius)
         reason, face = _decide_end(faces, g, params, t, p, v, kind, support, n, t_end)
         d = Decision(kind, support, n, reason, face)
         seg = advance(faces, g, params, t, p, v, d, t_end)
-        return d, seg, _next_structure(faces, g, params, seg, d)
-
-    def cond(carry):
-        k, done = carry[0], carry[-3]
-        return (k < S) & ~jnp.all(done)
-
-    def body(carry):
-        k, count, state, done, record, (params, t_end) = carry
-        if batch == 1:  # one ball: no vmap, so that its segment's branches (lax.cond) are branches
-            one = step(*jax.tree.map(lambda x: x[0], (params, t_end) + state))
-            d, seg, following = jax.tree.map(lambda x: x[None], one)
-        else:
-            d, seg, following = jax.vmap(step)(params, t_end, *state)
-        active = ~done
-
-        def keep(new, old):
-            return jnp.where(active.reshape((batch,) + (1,) * (new.ndim - 1)), new, old)
-
-        d = jax.tree.map(keep, d, d0)  # a finished ball's slots stay UNUSED
-        record = jax.tree.map(lambda r, x: r.at[:, k].set(x), record, (d, seg))
-        state = jax.tree.map(keep, (seg.t1, seg.p1, seg.v1_post) + following, state)
+        following = _next_structure(faces, g, params, seg, d)
+        record = jax.tree.map(lambda r, x: r.at[k].set(x), record, (d, seg))
+        state = (seg.t1, seg.p1, seg.v1_post) + following
         # The parameters go round the loop through an optimization barrier, so that XLA does
         # not hoist their share of the work out of it (as some 70 separate kernels).
-        return k + 1, count + active, state, done | (active & (d.reason == END)), record, jax.lax.optimization_barrier((params, t_end))
+        return k + 1, state, d.reason == END, record, jax.lax.optimization_barrier((params, t_end))
 
-    state = (zeros, params.position, params.velocity, ints + FLIGHT, ints - 1, zeros)
-    init = (jnp.int32(0), ints, state, jnp.zeros(batch, bool), record, (params, t_end))
-    _, count, _, done, (decisions, segments), _ = jax.lax.while_loop(cond, body, init)
+    state = (zero, params.position, params.velocity, jnp.int32(FLIGHT), jnp.int32(-1), zero)
+    init = (jnp.int32(0), state, jnp.bool_(False), record, (params, t_end))
+    count, _, done, (decisions, segments), _ = jax.lax.while_loop(cond, body, init)
     # Unused slots hold the final state, so that sampling past the last segment is exact.
-    last = jax.tree.map(lambda x: x[jnp.arange(batch), jnp.maximum(count - 1, 0)], segments)
+    last = jax.tree.map(lambda x: x[jnp.maximum(count - 1, 0)], segments)
     fill = Segment(last.t1, last.p1, last.v1_post, z3, last.t1, last.p1, last.v1_post, last.v1_post, z3)
-    unused = jnp.arange(S)[None, :] >= count[:, None]
+    unused = jnp.arange(S) >= count
     segments = jax.tree.map(
-        lambda x, f: jnp.where(unused.reshape((batch, S) + (1,) * (f.ndim - 1)), f[:, None], x), segments, fill
+        lambda x, f: jnp.where(unused.reshape((S,) + (1,) * f.ndim), f, x), segments, fill
     )
     return Plan(decisions=decisions, segments=segments, n_segments=count, complete=done)
 

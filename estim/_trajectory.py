@@ -169,10 +169,14 @@ def _listed(seg: Segment, d: Decision, e, g, max_events: int):
     return bounces, jnp.minimum(total, max_events + 1.0)
 
 
-def _slot_of(ends, capped, i):
-    """Segment k of event slot i (float), and the event's number within it (from 1)."""
+def _slot_of(d: Decision, bounces, capped, ends, i):
+    """Event slot i (float; elementwise): its segment k, its bounce number j in a train
+    (from 1), whether it is a train's slot and whether it is the train's settling."""
     k = jnp.clip(jnp.searchsorted(ends, i, side="right"), 0, ends.shape[0] - 1)
-    return k, i - (ends - capped)[k] + 1.0
+    local = i - (ends - capped)[k] + 1.0
+    train_slot = d.kind[k] == TRAIN
+    settle_slot = train_slot & (d.reason[k] == SETTLE) & (local > bounces[k])
+    return k, jnp.where(train_slot & ~settle_slot, local, 1.0), train_slot, settle_slot
 
 
 def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
@@ -180,10 +184,7 @@ def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
     bounces, capped = _listed(seg, d, e, g, max_events)
     ends = jnp.cumsum(capped)
     i = jnp.arange(max_events, dtype=jnp.float64)
-    k, local = _slot_of(ends, capped, i)
-    train_slot = d.kind[k] == TRAIN
-    settle_slot = train_slot & (d.reason[k] == SETTLE) & (local > bounces[k])
-    bounce_no = jnp.where(train_slot & ~settle_slot, local, 1.0)
+    k, bounce_no, train_slot, settle_slot = _slot_of(d, bounces, capped, ends, i)
     return k, bounce_no, i < ends[-1], train_slot, settle_slot, ends[-1]
 
 
@@ -253,11 +254,8 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
     total = ends[-1]
 
     def listed(i):
-        k, local = _slot_of(ends, capped, i)
+        k, j, train_slot, settle_slot = _slot_of(d, bounces, capped, ends, i)
         s, dk = jax.tree.map(lambda x: x[k], (seg, d))
-        train_slot = dk.kind == TRAIN
-        settle_slot = train_slot & (dk.reason == SETTLE) & (local > bounces[k])
-        j = jnp.where(train_slot & ~settle_slot, local, 1.0)
         return _event(s, dk, j, train_slot, settle_slot, True, e, mu_t, g)
 
     def padding(i):

@@ -19,7 +19,7 @@ import estim
 from estim import _config
 from estim._contact import inner
 from estim._simulate import _flat_params
-from estim._solver import plan_batch, replay
+from estim._solver import plan, replay
 
 _PROBE = (
     "import os, json, sys\n"
@@ -85,9 +85,8 @@ def test_event_loops_compile_to_one_kernel():
     golf = estim.Params.for_ball(scene, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0.0, 0.0))
     three = _flat_params(seed_params(scene))  # the seed's three balls
 
-    plan_hlo = jax.jit(lambda p: plan_batch(scene, p, 2.3, 48)).lower(three).compile().as_text()
-    decisions = plan_batch(scene, _flat_params(golf), 2.3, 48).decisions
-    decisions = jax.tree.map(lambda x: x[0], decisions)
+    plan_hlo = jax.jit(lambda p: jax.lax.map(lambda q: plan(scene, q, 2.3, 48), p)).lower(three).compile().as_text()
+    decisions = plan(scene, golf, 2.3, 48).decisions
 
     def final_x(e):
         return replay(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3, decisions).p1[-1, 0]
