@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from ._scene import Scene
 
@@ -120,19 +120,32 @@ class Params(eqx.Module):
                    drag_coefficient=drag_coefficient, spin=spin)
 
 
+# The checks of ``Params.__check_init__`` as they run inside ``jit``: a message and what
+# holds, elementwise, for valid parameters (NaN fails every one).
+PARAM_CHECKS = (
+    ("e must lie in [0, 1]", lambda p: (p.e >= 0) & (p.e <= 1)),
+    ("mu_t must lie in [0, 1]", lambda p: (p.mu_t >= 0) & (p.mu_t <= 1)),
+    ("radius must be > 0", lambda p: p.radius > 0),
+    ("position must be finite", lambda p: jnp.isfinite(p.position)),
+    ("velocity must be finite", lambda p: jnp.isfinite(p.velocity)),
+    ("mass must be > 0", lambda p: True if p.mass is None else p.mass > 0),
+    ("drag_coefficient must be >= 0", lambda p: p.drag_coefficient >= 0),
+    ("spin must be finite", lambda p: jnp.isfinite(p.spin)),
+)
+
+
+def invalid_params(params: Params) -> Int[Array, ""]:
+    """0 if ``params`` pass every check of ``PARAM_CHECKS``, else 1 + the index of the
+    first that fails (for any ball)."""
+    bad = jnp.stack([~jnp.all(ok(params)) for _, ok in PARAM_CHECKS])
+    return jnp.where(jnp.any(bad), jnp.argmax(bad) + 1, 0).astype(jnp.int32)
+
+
 def check_runtime(params: Params, t_end) -> Params:
-    """The checks of ``Params.__check_init__``, inside ``jit`` (``eqx.error_if``)."""
-    e = eqx.error_if(params.e, ~((params.e >= 0) & (params.e <= 1)), "e must lie in [0, 1]")
-    mu = eqx.error_if(params.mu_t, ~((params.mu_t >= 0) & (params.mu_t <= 1)), "mu_t must lie in [0, 1]")
-    r = eqx.error_if(params.radius, ~(params.radius > 0), "radius must be > 0")
-    p = eqx.error_if(params.position, ~jnp.all(jnp.isfinite(params.position)), "position must be finite")
-    v = eqx.error_if(params.velocity, ~jnp.all(jnp.isfinite(params.velocity)), "velocity must be finite")
-    m = params.mass
-    if m is not None:
-        m = eqx.error_if(m, ~(m > 0), "mass must be > 0")
-    cd = eqx.error_if(params.drag_coefficient, ~(params.drag_coefficient >= 0), "drag_coefficient must be >= 0")
-    w = eqx.error_if(params.spin, ~jnp.all(jnp.isfinite(params.spin)), "spin must be finite")
-    return Params(e, mu, r, p, v, mass=m, drag_coefficient=cd, spin=w)
+    """The checks of ``Params.__check_init__``, inside ``jit``: one ``eqx.branched_error_if``
+    (each is a kernel of its own in the compiled program) naming the first that fails."""
+    code = invalid_params(params)
+    return eqx.branched_error_if(params, code > 0, jnp.maximum(code - 1, 0), [m for m, _ in PARAM_CHECKS])
 
 
 def check_t_end(t_end) -> None:

@@ -12,7 +12,8 @@ from jaxtyping import ArrayLike, Float
 from . import _ode
 from ._config import CLOSED_FORM_COMPILE, jit, require_x64, top_level
 from ._ode import OdeSettings
-from ._params import Params, check_runtime, check_t_end
+from ._params import PARAM_CHECKS, Params, check_runtime, check_t_end, invalid_params
+from ._record import layout_of, pack
 from ._scene import Scene
 from ._solver import plan, segments_of
 from ._trajectory import (
@@ -21,6 +22,7 @@ from ._trajectory import (
     Trajectory,
     list_events_used,
     sample,
+    trajectory_parts,
 )
 
 __all__ = ["simulate"]
@@ -192,10 +194,8 @@ def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks):
         nodes=jax.tree.map(unflat, nodes), steps=jax.tree.map(unflat, steps),
         normals=unflat(normals), e=unflat(flat.e), mu_t=unflat(flat.mu_t), gravity=scene.gravity,
     )
-    return Trajectory(
-        ts=ts, position=unflat(pos), velocity=unflat(vel), events=jax.tree.map(unflat, events),
-        final=jax.tree.map(unflat, final), complete=unflat(complete), solution=solution,
-    )
+    return Trajectory.pack(ts, unflat(pos), unflat(vel), jax.tree.map(unflat, events),
+                           jax.tree.map(unflat, final), unflat(complete), solution)
 
 
 def _check_effects(scene: Scene, params: Params) -> None:
@@ -216,9 +216,6 @@ def _check_effects(scene: Scene, params: Params) -> None:
 @jit(options=CLOSED_FORM_COMPILE)
 def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     batch = params.batch_shape
-    if checks:
-        params = check_runtime(params, t_end)
-
     flat = _flat_params(params)
     g = scene.gravity
 
@@ -228,7 +225,11 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
     # time the branches of a segment (lax.cond in estim._solver) are branches, not both
     # sides computed and one selected as under vmap. Vectorised over balls, the seed's 3
     # balls took 329 us, 10,000 balls 309 ms; this way 235 us and 174 ms (docs/pages/
-    # speed.md). A ball's result does not depend on the other balls of its batch.
+    # speed.md). A ball's result does not depend on the other balls of its batch. The loop
+    # writes each ball's result as the packed rows of a Trajectory, so that the program is
+    # the loop and little else, and returns a few arrays.
+    layouts = []  # the layout of a ball's rows, found while tracing its loop body
+
     def ball(prm):
         pl = plan(scene, prm, t_end, max_segments)
         segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
@@ -236,32 +237,28 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks):
         events = list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
         last = jnp.maximum(pl.n_segments - 1, 0)
         final = State(t_end, segments.p1[last], segments.v1_post[last])
-        return pos, vel, events, final, segments, pl.decisions, pl.complete
+        solution = ClosedFormSolution(segments=segments, structure=pl.decisions, e=prm.e, mu_t=prm.mu_t, gravity=g)
+        parts = trajectory_parts(pos, vel, events, final, pl.complete, solution)
+        layouts.append(layout_of(parts, 0))
+        rows = pack(parts, layouts[-1])
+        return rows + (invalid_params(prm),) if checks else rows
 
-    out = jax.lax.map(ball, flat)
-    pos, vel, events, final, segments, decisions, complete = out
-    if checks:
-        pos = eqx.error_if(pos, ~jnp.all(complete), _INCOMPLETE)
+    record, flags, *invalid = jax.lax.map(ball, flat)
 
     def unflat(x):
         return x.reshape(batch + x.shape[1:])
 
-    solution = ClosedFormSolution(
-        segments=jax.tree.map(unflat, segments),
-        structure=jax.tree.map(unflat, decisions),
-        e=unflat(flat.e),
-        mu_t=unflat(flat.mu_t),
-        gravity=scene.gravity,
-    )
-    return Trajectory(
-        ts=ts,
-        position=unflat(pos),
-        velocity=unflat(vel),
-        events=jax.tree.map(unflat, events),
-        final=jax.tree.map(unflat, final),
-        complete=unflat(complete),
-        solution=solution,
-    )
+    traj = Trajectory(ts=ts, record=unflat(record), flags=unflat(flags), gravity=g, layout=layouts[-1])
+    if checks:
+        # One check for the whole call, after the loop (each eqx.error_if is a kernel of
+        # its own): the first parameter check that fails, else a ball left incomplete.
+        n_checks = len(PARAM_CHECKS)
+        first = jnp.min(jnp.where(invalid[0] > 0, invalid[0], n_checks + 1))
+        fails = (first <= n_checks) | ~jnp.all(traj.complete)
+        index = jnp.where(first <= n_checks, first - 1, n_checks)
+        messages = [message for message, _ in PARAM_CHECKS] + [_INCOMPLETE]
+        traj = eqx.tree_at(lambda tr: tr.record, traj, eqx.branched_error_if(traj.record, fails, index, messages))
+    return traj
 
 
 def _check_outside(scene: Scene, params: Params) -> None:

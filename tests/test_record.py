@@ -1,0 +1,79 @@
+"""The packed storage of a Trajectory (estim._record): the views give back exactly what was
+packed, a ball's views are the batch's views at its index, and a jitted simulate hands
+back the few packed arrays, not one array per field."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import SEED_T_END, run, seed_arrays
+
+import estim
+from estim._record import layout_of, pack, unpack
+from estim._trajectory import Events, State
+
+
+def _parts(rng, batch):
+    n = int(np.prod(batch))
+
+    def f(*shape):
+        return jnp.asarray(rng.normal(size=batch + shape))
+
+    events = Events(
+        t=f(5), position=f(5, 3), velocity_pre=f(5, 3), velocity_post=f(5, 3),
+        face=jnp.asarray(rng.integers(-1, 90, size=batch + (5,)), jnp.int32),
+        kind=jnp.asarray(rng.integers(-1, 2, size=batch + (5,)), jnp.int32),
+        count=jnp.asarray(rng.integers(0, 6, size=batch), jnp.int32),
+        truncated=jnp.asarray(rng.integers(0, 2, size=batch), bool),
+    )
+    assert n > 0
+    return {"position": f(4, 3), "events": events, "final": State(f(), f(3), f(3)),
+            "index": jnp.asarray(rng.integers(0, 2**40, size=batch), jnp.int64) % 1000}
+
+
+@pytest.mark.parametrize("batch", [(), (3,), (2, 4)])
+def test_pack_unpack_round_trip(batch):
+    parts = _parts(np.random.default_rng(0), batch)
+    layout = layout_of(parts, len(batch))
+    numbers, integers = pack(parts, layout, batch)
+    assert numbers.shape == batch + (layout.n_numbers,) and numbers.dtype == jnp.float64
+    assert integers.shape == batch + (layout.n_integers,) and integers.dtype == jnp.int32
+    for name, tree in parts.items():
+        for rows in ((numbers, integers), (np.asarray(numbers), np.asarray(integers))):  # JAX or NumPy rows
+            back = unpack(*rows, layout, name)
+            assert jax.tree.structure(back) == jax.tree.structure(tree)
+            for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(tree), strict=True):
+                assert a.shape == b.shape and a.dtype == b.dtype
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_trajectory_views_and_indexing(stairs):
+    traj = run(stairs, *seed_arrays(stairs), SEED_T_END)  # the suite's padded batch
+    # ts, the two rows, gravity: what a jitted call hands back.
+    assert len(jax.tree.leaves(traj)) == 4
+    n = traj.record.shape[0]
+    for i in (0, 1, n - 1):
+        one = traj[i]
+        whole = (traj.position, traj.velocity, traj.events, traj.final, traj.complete)
+        for a, b in zip(jax.tree.leaves((one.position, one.velocity, one.events, one.final, one.complete)),
+                        [x[i] for x in jax.tree.leaves(whole)], strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(one.evaluate(jnp.array([0.4, 1.1]))[0]),
+                                      np.asarray(traj.evaluate(jnp.array([0.4, 1.1]))[0][i]))
+    assert traj[:2].record.shape[0] == 2
+    with pytest.raises(IndexError, match="batch axes"):
+        traj[..., 0]
+    with pytest.raises(IndexError, match="batch axes"):
+        traj[0, 1]
+
+
+def test_jitted_simulate_returns_the_packed_arrays(stairs):
+    golf = estim.Params.for_ball(stairs, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0, 0))
+    out = jax.jit(lambda p: estim.simulate(stairs, p, 2.3))(golf)
+    assert [x.shape[-1:] for x in jax.tree.leaves(out)][:1] == [(2,)]  # ts
+    assert len(jax.tree.leaves(out)) == 4
+    eager = estim.simulate(stairs, golf, 2.3)
+    for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(eager), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
