@@ -159,9 +159,9 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     forward_batch = jax.jit(lambda p: estim.simulate(scene, p, t_end, throw=False))
     batch_us = _median_us(forward_batch, many, max(min(repeats, 20), 3), warmup=1)
     incomplete = int(np.sum(~np.asarray(forward_batch(many).complete)))
-    # The same batch when only the final states are kept: the rest of the call is the dense
-    # solution, the samples and the event lists (docs/pages/speed.md).
-    final_batch = jax.jit(lambda p: estim.simulate(scene, p, t_end, throw=False).final)
+    # The same batch keeping only the final states (keep=()): the rest of the call is the
+    # dense solution, the samples and the event lists (docs/pages/speed.md).
+    final_batch = jax.jit(lambda p: estim.simulate(scene, p, t_end, throw=False, keep=()).final)
     batch_final_us = _median_us(final_batch, many, max(min(repeats, 20), 3), warmup=1)
 
     result = {
@@ -219,7 +219,7 @@ def format_speed(r: dict) -> str:
         f"first call with the persistent compilation cache warm: {r['first_call_cached_s']:.3f} s",
         f"forward without jit (estim.simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
         f"batch of {r['batch']}: {r['batch_us']:.1f} us/call, {r['batch_final_us']:.1f} us keeping "
-        f"only the final states ({r['batch_incomplete']} balls incomplete within max_segments); "
+        f"only the final states, keep=() ({r['batch_incomplete']} balls incomplete within max_segments); "
         f"import estim: {r['import_s']:.2f} s",
         "gradient d(golf final x)/d(e, mu_t, vx0) = "
         + ", ".join(f"{v:.8f}" for v in r["gradient"].values()),
@@ -335,13 +335,15 @@ def _programs(scene, params, t_end, ts):
     import estim
 
     from ._simulate import _simulate, _simulate_ode
+    from ._trajectory import check_keep
 
     golf = jax.tree.map(lambda x: x[1], params)  # the seed order: bocce, golf, pingpong
+    everything = check_keep(None)
 
     def solve(prm, settings):
         if settings is None:
-            return _simulate(scene, prm, t_end, ts, 48, MAX_EVENTS, False)
-        return _simulate_ode(scene, prm, t_end, ts, settings, MAX_EVENTS, False)
+            return _simulate(scene, prm, t_end, ts, 48, MAX_EVENTS, False, everything)
+        return _simulate_ode(scene, prm, t_end, ts, settings, MAX_EVENTS, False, everything)
 
     def final_x(theta, settings):
         prm = estim.Params(theta[0], theta[1], golf.radius, golf.position,

@@ -11,6 +11,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._contact import REST_SPEED, geometric_count, inner
 from ._record import Layout, layout_of, pack, unpack
+from ._scan import scan_used
 from ._solver import BOUNCES, CONTACT, SETTLE, TRAIN, UNUSED, Decision, Segment
 from ._train import bounce, series, state_at
 
@@ -89,6 +90,13 @@ class ClosedFormSolution(AbstractSolution):
         return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
 
 
+# What ``estim.simulate(..., keep=...)`` may keep besides the final state and completion,
+# and the parts of a Trajectory each one is.
+KEEP = ("samples", "events", "solution")
+_KEPT_AS = {"samples": ("position", "velocity"), "events": ("events",), "solution": ("solution",)}
+_PART_OF = {part: name for name, parts in _KEPT_AS.items() for part in parts}
+
+
 class Trajectory(eqx.Module):
     """What :func:`estim.simulate` returns, on either path (closed form or ODE).
 
@@ -117,16 +125,22 @@ class Trajectory(eqx.Module):
 
     @classmethod
     def pack(cls, ts, position, velocity, events: Events, final: State, complete, solution,
-             batch_ndim: int | None = None) -> Trajectory:
+             batch_ndim: int | None = None, keep: frozenset[str] = frozenset(KEEP)) -> Trajectory:
         """A trajectory from its parts (``batch_ndim`` batch axes, default those of
-        ``complete``)."""
-        parts = trajectory_parts(position, velocity, events, final, complete, solution)
+        ``complete``), keeping those ``keep`` names."""
+        parts = trajectory_parts(position, velocity, events, final, complete, solution, keep)
         batch_ndim = jnp.ndim(complete) if batch_ndim is None else batch_ndim
         layout = layout_of(parts, batch_ndim)
         record, flags = pack(parts, layout, jnp.shape(complete)[:batch_ndim])
         return cls(ts=ts, record=record, flags=flags, gravity=solution.gravity, layout=layout)
 
     def _part(self, name):
+        if not any(part == name for part, *_ in self.layout.parts):
+            kept = ", ".join(repr(k) for k in KEEP if any(p in _KEPT_AS[k] for p, *_ in self.layout.parts))
+            raise ValueError(
+                f"this trajectory has no {name}: it was simulated with keep=({kept}); "
+                f"pass keep=... with {_PART_OF[name]!r} to estim.simulate"
+            )
         return unpack(self.record, self.flags, self.layout, name)
 
     def __getitem__(self, index) -> Trajectory:
@@ -171,12 +185,32 @@ class Trajectory(eqx.Module):
         return self.solution.evaluate(t)
 
 
-def trajectory_parts(position, velocity, events: Events, final: State, complete, solution) -> dict:
-    """The per-ball parts of a :class:`Trajectory`, as ``Trajectory.record`` and
-    ``flags`` hold them (the solution's gravity, one number for all balls, apart)."""
-    solution = eqx.tree_at(lambda s: s.gravity, solution, None)
-    return {"position": position, "velocity": velocity, "events": events, "final": final,
-            "complete": complete, "solution": solution}
+def check_keep(keep) -> frozenset[str]:
+    """``keep`` of ``estim.simulate`` as a set (None: everything)."""
+    if keep is None:
+        return frozenset(KEEP)
+    if isinstance(keep, str):
+        keep = (keep,)
+    unknown = [k for k in keep if k not in KEEP]
+    if unknown:
+        raise ValueError(f"keep may name {', '.join(map(repr, KEEP))} (the final state is always kept), "
+                         f"got {unknown[0]!r}")
+    return frozenset(keep)
+
+
+def trajectory_parts(position, velocity, events: Events, final: State, complete, solution,
+                     keep: frozenset[str] = frozenset(KEEP)) -> dict:
+    """The per-ball parts of a :class:`Trajectory` that ``keep`` keeps, as
+    ``Trajectory.record`` and ``flags`` hold them (the solution's gravity, one number for
+    all balls, apart)."""
+    parts = {"final": final, "complete": complete}
+    if "samples" in keep:
+        parts |= {"position": position, "velocity": velocity}
+    if "events" in keep:
+        parts["events"] = events
+    if "solution" in keep:
+        parts["solution"] = eqx.tree_at(lambda s: s.gravity, solution, None)
+    return parts
 
 
 def sample(seg: Segment, d: Decision, e, mu_t, g, t):
@@ -307,9 +341,10 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
     def count(_, k):
         one = jax.tree.map(lambda x: x[k], (seg, d))
         return None, jax.lax.cond(k < n_segments, lambda sd: _listed(*sd, e, g, max_events),
-                                  lambda sd: (jnp.float64(0.0), jnp.float64(0.0)), one)
+                                  lambda sd: none, one)
 
-    _, (bounces, capped) = jax.lax.scan(count, None, jnp.arange(n_seg))
+    none = (jnp.float64(0.0), jnp.float64(0.0))
+    _, (bounces, capped) = scan_used(count, None, jnp.arange(n_seg), n_segments, lambda _: none, n_seg)
     ends = jnp.cumsum(capped)
     total = ends[-1]
 
@@ -326,7 +361,7 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
         i = i.astype(jnp.float64)
         return None, jax.lax.cond(i < total, listed, padding, i)
 
-    _, fields = jax.lax.scan(slot, None, jnp.arange(max_events))
+    _, fields = scan_used(slot, None, jnp.arange(max_events), total, lambda _: padding(0.0), max_events)
     return Events(*fields, count=jnp.minimum(total, max_events).astype(jnp.int32), truncated=total > max_events)
 
 

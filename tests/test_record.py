@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SEED_T_END, run, seed_arrays
+from conftest import BATCH_ROUNDING, SEED_T_END, run, seed_arrays
 
 import estim
 from estim._record import layout_of, pack, unpack
@@ -77,3 +77,40 @@ def test_jitted_simulate_returns_the_packed_arrays(stairs):
     eager = estim.simulate(stairs, golf, 2.3)
     for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(eager), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_keep_computes_only_what_it_keeps(stairs):
+    balls = estim.Params(jnp.array([0.3, 0.7, 0.95]), 0.98, 0.05, jnp.array([-0.2, 0.0, 1.70]), (1.15, 0.0, 0.0))
+    ts = jnp.linspace(0.0, 2.3, 5)
+    full = estim.simulate(stairs, balls, 2.3, ts=ts)
+    for keep in ((), ("events",), ("samples", "solution"), "samples"):
+        part = estim.simulate(stairs, balls, 2.3, ts=ts, keep=keep)
+        kept = {keep} if isinstance(keep, str) else set(keep)
+        # What is kept is what the full trajectory has (to rounding: another program, so
+        # multiply-adds may be fused differently; integers exactly); the rest is an error.
+        views = {"final": lambda t: t.final, "samples": lambda t: (t.position, t.velocity),
+                 "events": lambda t: t.events, "solution": lambda t: t.solution}
+        for name, view in views.items():
+            if name == "final" or name in kept:
+                for a, b in zip(jax.tree.leaves(view(part)), jax.tree.leaves(view(full)), strict=True):
+                    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=BATCH_ROUNDING, atol=BATCH_ROUNDING)
+                    assert a.dtype == b.dtype
+            else:
+                with pytest.raises(ValueError, match=f"keep=.*pass keep=... with '{name}'"):
+                    view(part)
+        assert part.record.shape[-1] <= full.record.shape[-1]
+    assert estim.simulate(stairs, balls, 2.3, keep=()).record.shape[-1] == 7  # t, position, velocity
+    with pytest.raises(ValueError, match="keep may name 'samples', 'events', 'solution'.*got 'final'"):
+        estim.simulate(stairs, balls, 2.3, keep=("final",))
+
+
+def test_keep_on_the_ode_path(stairs):
+    air = stairs.with_air(estim.Air(density=1.204))
+    golf = estim.Params.for_ball(air, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0, 0))
+    full = estim.simulate(air, golf, 1.0)
+    part = estim.simulate(air, golf, 1.0, keep=("events",))
+    np.testing.assert_allclose(np.asarray(part.final.position), np.asarray(full.final.position),
+                               rtol=BATCH_ROUNDING, atol=BATCH_ROUNDING)
+    np.testing.assert_allclose(np.asarray(part.events.t), np.asarray(full.events.t), rtol=BATCH_ROUNDING)
+    with pytest.raises(ValueError, match="has no solution"):
+        part.evaluate(0.5)
