@@ -151,7 +151,8 @@ def simulate(
     else:
         traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep)
         message = _INCOMPLETE
-    if throw and not traced and not bool(np.all(np.asarray(traj.complete))):
+    # (Read from NumPy views of the rows: one host read, not an eager JAX slice per view.)
+    if throw and not traced and not bool(np.all(jax.tree.map(np.asarray, traj).complete)):
         raise RuntimeError(message)
     return traj
 

@@ -115,6 +115,10 @@ class Trajectory(eqx.Module):
     its result as a buffer of its own, at about 1.5 us each on the CPU: packed, a
     trajectory is 4 arrays instead of 32, and the seed's forward call takes about half the
     time (docs/pages/speed.md). Build one with :meth:`Trajectory.pack`.
+
+    ``traj[i]`` is the trajectory of the balls ``i`` selects (indexing the batch axes). A
+    trajectory simulated with ``keep`` (:func:`estim.simulate`) has only what it kept:
+    reading the samples, events or solution it left out raises ``ValueError``.
     """
 
     ts: Float[Array, " times"]
