@@ -7,6 +7,7 @@ import abc
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._contact import REST_SPEED, geometric_count, inner
@@ -145,7 +146,14 @@ class Trajectory(eqx.Module):
                 f"this trajectory has no {name}: it was simulated with keep=({kept}); "
                 f"pass keep=... with {_PART_OF[name]!r} to estim.simulate"
             )
-        return unpack(self.record, self.flags, self.layout, name)
+        rows = (self.record, self.flags)
+        if any(isinstance(x, jax.core.Tracer) or not isinstance(x, jax.Array) for x in rows):
+            return unpack(*rows, self.layout, name)  # traced (free slices) or NumPy rows
+        # Concrete JAX rows: slice their NumPy views (zero-copy on the CPU) and hand back JAX
+        # arrays. Eager JAX slices would compile one small program per slice shape (0.3 s
+        # for the first reads of a trajectory in a fresh process, against 0.3 ms so).
+        part = unpack(*(np.asarray(x) for x in rows), self.layout, name)
+        return jax.tree.map(jnp.asarray, part)
 
     def __getitem__(self, index) -> Trajectory:
         """The balls ``index`` selects (NumPy indexing of the batch axes): ``traj[0]`` is
