@@ -63,6 +63,10 @@ def test_trajectory_views_and_indexing(stairs):
         np.testing.assert_array_equal(np.asarray(one.evaluate(jnp.array([0.4, 1.1]))[0]),
                                       np.asarray(traj.evaluate(jnp.array([0.4, 1.1]))[0][i]))
     assert traj[:2].record.shape[0] == 2
+    # Views of concrete rows are JAX arrays (sliced on the host); of NumPy rows, NumPy arrays.
+    assert all(isinstance(x, jax.Array) for x in jax.tree.leaves(traj.events))
+    host = jax.tree.map(np.asarray, traj)
+    assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(host.events))
     with pytest.raises(IndexError, match="batch axes"):
         traj[..., 0]
     with pytest.raises(IndexError, match="batch axes"):
