@@ -3,6 +3,12 @@
 Importing estim switches JAX's 64-bit mode on (``jax_enable_x64``), because event times
 and their sensitivities lose most of their digits in float32. If 64-bit mode is switched
 off afterwards, every entry point raises instead of returning float32 results.
+
+If JAX has not started its backend yet, importing estim also sets two things JAX reads
+when it starts it: XLA's small-loop threshold (``XLA_FLAGS``, below), and synchronous
+dispatch on the CPU (``jax_cpu_enable_async_dispatch = False``: programs run on the
+calling thread; ``ESTIM_ASYNC_DISPATCH=1`` keeps JAX's default). Both change how programs
+run, not what they compute.
 """
 
 import functools
@@ -45,6 +51,42 @@ def _set_small_loop_threshold() -> bool:
 
 
 SMALL_LOOPS_AS_KERNELS = _set_small_loop_threshold()
+
+# DISPATCH: by default JAX's CPU client runs a compiled program on a thread of its own
+# pool, and the calling thread sleeps until it is done: a hand-over between threads at
+# every call, which on the 2-core reference machine cost up to 40 us more than the whole
+# gradient of the golf ball (38 us when run on the calling thread; docs/pages/speed.md).
+# estim's programs are microseconds long and their callers wait for the result, so estim
+# asks JAX to run programs on the calling thread (``jax_cpu_enable_async_dispatch``). JAX
+# reads this once, when it starts its backend, so only before that; ``ESTIM_ASYNC_DISPATCH=1``
+# leaves JAX's default, as does setting the option back after importing estim, before the
+# first computation.
+_ASYNC_OPTION = "jax_cpu_enable_async_dispatch"
+
+
+def _set_sync_dispatch() -> bool:
+    """Ask JAX's CPU client to run programs on the calling thread, if its backend has not
+    started and ``ESTIM_ASYNC_DISPATCH`` is not ``1``. Returns whether estim set it."""
+    if os.environ.get("ESTIM_ASYNC_DISPATCH") == "1":
+        return False
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        return False
+    try:
+        jax.config.update(_ASYNC_OPTION, False)
+    except AttributeError:  # a JAX without the option: nothing to set
+        return False
+    return True
+
+
+SYNC_DISPATCH = _set_sync_dispatch()
+
+
+def dispatch_is_sync() -> bool:
+    """Whether JAX's CPU client runs programs on the calling thread (the option as JAX
+    read it when its backend started, or will read it)."""
+    return not bool(getattr(jax.config, "values", {}).get(_ASYNC_OPTION, True))
 
 # TRACING: JAX traces a Python function at every call, and a first call of `simulate`
 # spends about a second tracing. The closed forms that a program calls dozens of times

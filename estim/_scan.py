@@ -21,6 +21,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def scan_used(f: Callable, init, xs, n_used, idle: Callable, fill):
@@ -37,7 +38,10 @@ def scan_used(f: Callable, init, xs, n_used, idle: Callable, fill):
     pad = n_chunks * chunk - length
 
     def pad_and_split(x, x_fill):
-        x = jnp.concatenate([x, jnp.broadcast_to(x_fill, (pad,) + x.shape[1:]).astype(x.dtype)])
+        # NumPy items (slot indices) stay NumPy: constants of the program, not kernels
+        # that compute them at every call.
+        xp = np if isinstance(x, np.ndarray) and isinstance(x_fill, int | np.ndarray) else jnp
+        x = xp.concatenate([x, xp.broadcast_to(x_fill, (pad,) + x.shape[1:]).astype(x.dtype)])
         return x.reshape((n_chunks, chunk) + x.shape[1:])
 
     chunks = jax.tree.map(pad_and_split, xs, fill)
@@ -53,6 +57,6 @@ def scan_used(f: Callable, init, xs, n_used, idle: Callable, fill):
         k, xs_c = inp
         return jax.lax.cond(k * chunk < n_used, run, skip, carry, xs_c)
 
-    carry, ys = jax.lax.scan(body, init, (jnp.arange(n_chunks), chunks))
+    carry, ys = jax.lax.scan(body, init, (np.arange(n_chunks), chunks))
     ys = jax.tree.map(lambda y: y.reshape((n_chunks * chunk,) + y.shape[2:])[:length], ys)
     return carry, ys

@@ -230,7 +230,9 @@ def sample(seg: Segment, d: Decision, e, mu_t, g, t):
     shape = jnp.shape(t)
     t = jnp.reshape(t, (-1,))
     starts = jnp.where(d.kind != UNUSED, seg.t0, jnp.inf)
-    k = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
+    # searchsorted(starts, t, side="right") written as a count (starts are sorted): no
+    # search loop, whose index tables XLA would compute in a kernel of every call.
+    k = jnp.clip(jnp.sum(starts <= t[:, None], axis=1) - 1, 0, starts.shape[0] - 1)
     s = jax.tree.map(lambda x: x[k], seg)
     kind, n = d.kind[k], d.n[k]
     tau = t - s.t0
@@ -278,7 +280,8 @@ def _listed(seg: Segment, d: Decision, e, g, max_events: int):
 def _slot_of(d: Decision, bounces, capped, ends, i):
     """Event slot i (float; elementwise): its segment k, its bounce number j in a train
     (from 1), whether it is a train's slot and whether it is the train's settling."""
-    k = jnp.clip(jnp.searchsorted(ends, i, side="right"), 0, ends.shape[0] - 1)
+    # searchsorted(ends, i, side="right") written as a count, as in `sample`
+    k = jnp.clip(jnp.sum(ends <= jnp.expand_dims(i, -1), axis=-1), 0, ends.shape[0] - 1)
     local = i - (ends - capped)[k] + 1.0
     train_slot = d.kind[k] == TRAIN
     settle_slot = train_slot & (d.reason[k] == SETTLE) & (local > bounces[k])
@@ -356,7 +359,7 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
                                   lambda sd: none, one)
 
     none = (jnp.float64(0.0), jnp.float64(0.0))
-    _, (bounces, capped) = scan_used(count, None, jnp.arange(n_seg), n_segments, lambda _: none, n_seg)
+    _, (bounces, capped) = scan_used(count, None, np.arange(n_seg), n_segments, lambda _: none, n_seg)
     ends = jnp.cumsum(capped)
     total = ends[-1]
 
@@ -373,7 +376,7 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
         i = i.astype(jnp.float64)
         return None, jax.lax.cond(i < total, listed, padding, i)
 
-    _, fields = scan_used(slot, None, jnp.arange(max_events), total, lambda _: padding(0.0), max_events)
+    _, fields = scan_used(slot, None, np.arange(max_events), total, lambda _: padding(0.0), max_events)
     return Events(*fields, count=jnp.minimum(total, max_events).astype(jnp.int32), truncated=total > max_events)
 
 

@@ -210,12 +210,13 @@ def test_restrict_cpus_fresh_process():
 def test_bench_speed_json(capsys):
     assert main(["bench", "speed", "--json", "--batch", "100", "--repeats", "3"]) == 0
     out = json.loads(capsys.readouterr().out)
-    for key in ("forward_us", "gradient_us", "first_call_s", "batch_us", "batch_final_us", "batch_balls_per_s",
-                "targets", "machine"):
+    for key in ("forward_us", "gradient_us", "gradient_all_us", "first_call_s", "batch_us", "batch_final_us",
+                "batch_balls_per_s", "targets", "machine"):
         assert key in out
     assert set(out["targets"]) == {"forward_us", "gradient_us", "first_call_s", "batch_balls_per_s"}
     assert out["machine"]["cpu_count"] >= 1 and out["machine"]["jax"]
     assert 1 <= out["machine"]["cpus_used"] <= out["machine"]["cpu_count"]
     # conftest imports estim before JAX starts its backend, so XLA took estim's threshold
     assert out["machine"]["small_loops_as_kernels"] is True
+    assert out["machine"]["sync_dispatch"] is True  # likewise estim's dispatch (estim._config)
     np.testing.assert_allclose(list(out["gradient"].values()), GOLF_GRAD, atol=1e-7)

@@ -109,3 +109,70 @@ def test_event_loops_compile_to_one_kernel():
     entry = sim_hlo[sim_hlo.index("\nENTRY"):]
     entry = entry[: entry.index("\n}\n")]
     assert len(re.findall(r"= .* call\(", entry)) == 1, "simulate is not one loop kernel"
+
+
+_DISPATCH_PROBE = (
+    "import json, jax\n"
+    "{before}\n"
+    "import estim\n"
+    "from estim import _config\n"
+    "jax.numpy.zeros(1).block_until_ready()\n"
+    "from jax._src import xla_bridge\n"
+    "print(json.dumps([_config.SYNC_DISPATCH, _config.dispatch_is_sync(),\n"
+    "                  bool(xla_bridge._CPU_ENABLE_ASYNC_DISPATCH.value)]))\n"
+)
+
+
+def _dispatch_probe(before: str = "", env_extra: dict | None = None):
+    env = {k: v for k, v in os.environ.items() if k != "ESTIM_ASYNC_DISPATCH"} | (env_extra or {})
+    out = subprocess.run([sys.executable, "-c", _DISPATCH_PROBE.format(before=before)], env=env,
+                         capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_import_runs_programs_on_the_calling_thread():
+    # [estim set it, estim reports it, JAX's option as the backend read it (async?)]
+    assert _dispatch_probe() == [True, True, False]
+
+
+def test_async_dispatch_can_be_kept():
+    assert _dispatch_probe(env_extra={"ESTIM_ASYNC_DISPATCH": "1"}) == [False, False, True]
+    # a user's setting after importing estim, before the first computation, wins
+    after = _DISPATCH_PROBE.replace("jax.numpy.zeros", "jax.config.update('jax_cpu_enable_async_dispatch', True)\njax.numpy.zeros")
+    out = subprocess.run([sys.executable, "-c", after.format(before="")], capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [True, False, True]
+    # a started backend is left alone
+    assert _dispatch_probe(before="jax.numpy.zeros(1)") == [False, False, True]
+
+
+def _entry_kernels(hlo: str) -> list[str]:
+    """The operations of the entry computation that XLA:CPU runs as kernels (thunks)."""
+    entry = hlo[hlo.index("\nENTRY"):]
+    entry = entry[: entry.index("\n}\n")]
+    free = ("parameter", "constant", "get-tuple-element", "tuple", "bitcast")
+    kinds = [re.search(r" ([a-z][a-z\-]*)\(", line.split("=", 1)[1]) for line in entry.splitlines()[1:] if "=" in line]
+    return [k.group(1) for k in kinds if k and k.group(1) not in free]
+
+
+@pytest.mark.skipif(not _config.SMALL_LOOPS_AS_KERNELS, reason="XLA's backend started before estim")
+def test_one_ball_with_keep_stays_one_loop_kernel():
+    """For one ball XLA would inline the loop over balls and run its body kernel by kernel
+    (dozens, which XLA:CPU spreads over its threads); with ``keep`` given the loop stays
+    one kernel, and the program at most the 8 kernels XLA:CPU runs on the calling thread.
+    The gradient is the issue's seed value either way."""
+    scene = estim.load_scene(STAIRS_XML)
+    golf = scene.ball("golf")
+
+    def final_x(theta, keep):
+        e, mu_t, vx0 = theta
+        p = estim.Params(e, mu_t, golf.radius, jnp.asarray(golf.position), jnp.stack([vx0, 0.0, 0.0]))
+        return estim.simulate(scene, p, 2.3, keep=keep).final.position[0]
+
+    theta = jnp.array([0.7, 0.98, 1.15])
+    kernels = {}
+    for keep in ((), None):
+        grad = jax.jit(jax.jacfwd(lambda th, keep=keep: final_x(th, keep)))
+        np.testing.assert_allclose(grad(theta), [0.19213914, 6.81524982, 2.17816532], atol=5e-9)
+        kernels[keep] = _entry_kernels(grad.lower(theta).compile().as_text())
+    assert kernels[()].count("call") == 1 and len(kernels[()]) <= 8, kernels[()]
+    assert len(kernels[None]) > 8  # inlined: the body's kernels
