@@ -96,6 +96,19 @@ def dispatch_is_sync() -> bool:
 # code is the same (XLA inlines the calls).
 
 
+def keep_loop(x):
+    """``x``, the result of a loop, with the loop marked for XLA to keep even when it runs
+    once (XLA otherwise replaces a loop of one trip by its body: kernels of their own).
+    A JAX without the value form ``set_xla_metadata(x, ...)`` leaves the loop unmarked
+    (it runs as before: the same results, more kernels)."""
+    try:
+        from jax.experimental.xla_metadata import set_xla_metadata
+
+        return set_xla_metadata(x, **{"skip-simplify-while-loops_trip-count-one": "true"})
+    except (ImportError, TypeError):
+        return x
+
+
 def require_x64() -> None:
     if not jax.config.jax_enable_x64:
         raise RuntimeError(

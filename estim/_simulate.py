@@ -9,11 +9,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental.xla_metadata import set_xla_metadata
 from jaxtyping import ArrayLike, Float
 
 from . import _ode
-from ._config import CLOSED_FORM_COMPILE, jit, require_x64, top_level
+from ._config import CLOSED_FORM_COMPILE, jit, keep_loop, require_x64, top_level
 from ._ode import OdeSettings
 from ._params import PARAM_CHECKS, Params, check_runtime, check_t_end, invalid_params
 from ._record import layout_of, pack, unpack
@@ -282,7 +281,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
         # state alone skip the rest. Where the caller said what to keep, the loop stays a
         # loop: one kernel, where the body is a few dozen (jacfwd of the golf ball's final
         # x, 6 kernels instead of 37; docs/pages/speed.md).
-        record = set_xla_metadata(record, **{"skip-simplify-while-loops_trip-count-one": "true"})
+        record = keep_loop(record)
 
     def unflat(x):
         return x.reshape(batch + x.shape[1:])
