@@ -182,11 +182,23 @@ def top_level() -> bool:
     return bool(clean()) if clean is not None else False
 
 
-def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] = FAST_COMPILE):
-    """``equinox.filter_jit``, with the XLA compile ``options`` when called at top level."""
+def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] = FAST_COMPILE,
+        static_argnames: tuple[str, ...] | None = None):
+    """``equinox.filter_jit``, with the XLA compile ``options`` when called at top level.
+
+    With ``static_argnames``, ``jax.jit`` instead: every other argument must then be a
+    pytree of arrays. It splits the arguments in C++, where ``filter_jit`` partitions
+    them in Python at every call (the direct call of ``simulate``: 0.15 ms of filter_jit
+    for 0.07 ms of program)."""
     if fun is None:
-        return functools.partial(jit, options=options)
-    nested = eqx.filter_jit(fun)
+        return functools.partial(jit, options=options, static_argnames=static_argnames)
+
+    def wrap(**compiler):
+        if static_argnames is None:
+            return eqx.filter_jit(fun, **compiler)
+        return jax.jit(fun, static_argnames=static_argnames, **compiler)
+
+    nested = wrap()
     top = None
 
     @functools.wraps(fun)
@@ -195,7 +207,7 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
         if not top_level():
             return nested(*args, **kwargs)
         if top is None:
-            top = eqx.filter_jit(fun, compiler_options=compile_options(options))
+            top = wrap(compiler_options=compile_options(options))
         return top(*args, **kwargs)
 
     return call

@@ -89,7 +89,7 @@ class Params(eqx.Module):
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
-        return jnp.broadcast_shapes(
+        return np.broadcast_shapes(  # shapes only: NumPy takes 3 us, jnp 8 us
             self.e.shape, self.mu_t.shape, self.radius.shape,
             self.position.shape[:-1], self.velocity.shape[:-1],
             () if self.mass is None else self.mass.shape,

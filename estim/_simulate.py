@@ -156,8 +156,8 @@ def simulate(
     else:
         traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep)
         message = _INCOMPLETE
-    # (Read from NumPy views of the rows: one host read, not an eager JAX slice per view.)
-    if throw and not traced and not bool(np.all(jax.tree.map(np.asarray, traj).complete)):
+    # (Read from NumPy views of the rows: no eager JAX operation.)
+    if throw and not traced and not np.all(unpack(np.asarray(traj.record), np.asarray(traj.flags), traj.layout, "complete")):
         raise RuntimeError(message)
     return traj
 
@@ -230,7 +230,7 @@ def _check_effects(scene: Scene, params: Params) -> None:
             )
 
 
-@jit(options=CLOSED_FORM_COMPILE)
+@jit(options=CLOSED_FORM_COMPILE, static_argnames=("max_segments", "max_events", "checks", "keep"))
 def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
     batch = params.batch_shape
     flat = _flat_params(params)
