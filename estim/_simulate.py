@@ -95,7 +95,7 @@ def simulate(
             unused parts by itself when the default keeps everything; a ``keep`` given
             also keeps the ball's loop one compiled kernel, which is what makes a
             derivative of its final state fast (``jax.jacfwd`` of the golf ball's final
-            x: about 40 us with ``keep=()``, about 50-70 us with the default).
+            x: about 40 us with ``keep=()``, 50-100 us with the default).
 
     Returns:
         A :class:`Trajectory`.
