@@ -247,8 +247,9 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
     # the loop and little else, and returns a few arrays.
     layouts = []  # the layout of a ball's rows, found while tracing its loop body
 
-    # The parameters enter the loop as one row per ball: one array (and one kernel that
-    # gathers it) instead of one per field.
+    # The parameters enter the loop as one row per ball, gathered by one kernel: where the
+    # caller computes them (slices and stacks of a theta under jacfwd), that is one kernel
+    # instead of one per field.
     params_layout = layout_of({"params": flat}, 1)
     params_rows, _ = pack({"params": flat}, params_layout, (flat.e.shape[0],))
 
