@@ -157,8 +157,10 @@ def simulate(
         traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep)
         message = _INCOMPLETE
     # (Read from NumPy views of the rows: no eager JAX operation.)
-    if throw and not traced and not np.all(unpack(np.asarray(traj.record), np.asarray(traj.flags), traj.layout, "complete")):
-        raise RuntimeError(message)
+    if throw and not traced:
+        complete = unpack(np.asarray(traj.record), np.asarray(traj.flags), traj.layout, "complete")
+        if not np.all(complete):
+            raise RuntimeError(message)
     return traj
 
 
@@ -276,7 +278,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
         return rows + (jnp.where(code > 0, code, jnp.where(pl.complete, 0, len(PARAM_CHECKS) + 1)),)
 
     record, flags, *code = jax.lax.map(ball, params_rows)
-    if set(keep) != set(KEEP):
+    if keep != frozenset(KEEP):  # (check_keep made keep a frozenset)
         # For one ball XLA replaces the loop by its body and drops whatever the caller
         # leaves unused: with every part kept, that is what lets a function of the final
         # state alone skip the rest. Where the caller said what to keep, the loop stays a
