@@ -16,8 +16,9 @@ The pipeline, per ball (all balls of a data set run together, batched with ``vma
    simulation per iteration; near the optimum the method converges quadratically.
 4. **Check the noise floor**: the rms residual of the inliers must match the noise level
    read from the data (the spread about each flight's parabola); if it does not, restart
-   with e from a grid over its range and keep the best. The report says when the floor is not
-   reached.
+   with e from a grid over its range and keep the best. Then read the robust scale again from
+   the best fit's residuals and, where it is clearly smaller than the one used, polish with
+   it. The report says when the floor is not reached.
 5. **Uncertainty** from the Gauss-Newton approximation at the optimum:
    ``cov = s^2 (J^T W J)^-1`` with J the Jacobian of the residuals with respect to the
    physical parameters, W the robust weights and ``s^2 = sum w r^2 / (n - p)`` the noise
@@ -357,18 +358,15 @@ def fit(
         theta, _, diag = run(theta, early)
         # The robust scale: the noise read from the data, or the spread of the residuals of
         # the early fit if larger (a model that misses some physics must not turn every
-        # sample into an 'outlier').
-        scales = []
-        for i, pr in enumerate(problems):
-            r, valid = np.asarray(diag[0][i]), np.asarray(diag[2][0][i])
-            rv = r[valid]
-            mad = 1.4826 * np.median(np.abs(rv - np.median(rv))) if rv.size else 0.0
-            scales.append(max(float(pr.scale), float(mad)))
-        problems = [eqx.tree_at(lambda p: p.scale, pr, np.float64(s)) for pr, s in zip(problems, scales, strict=True)]
-        batch = eqx.tree_at(lambda p: p.scale, batch, np.asarray(scales, dtype=np.float64))
+        # sample into an 'outlier'). A ball with fewer than three resolved bounces has no
+        # early window: its run here started from a guess and may have stopped far from
+        # the optimum, so its spread says nothing about the model and the noise stays.
+        scales = [_spread(diag, i, float(pr.scale)) if np.isfinite(windows[i]) else float(pr.scale)
+                  for i, pr in enumerate(problems)]
+        problems, batch = _with_scales(problems, batch, scales)
     say("fitting all data")
     theta, history, diag = run(theta, batch)
-    floors = [_at_floor(diag, i, problems[i], noises[i]) for i in range(len(names))]
+    floors = [_at_floor(diag, i, noises[i]) for i in range(len(names))]
     best_theta, best_diag, best_hist = jax.tree.map(np.array, (theta, diag, history))  # writable copies
     # Multi-start for balls above the noise floor: e from a grid across its range (the
     # basin of the right e can be narrow where bounces land near tread edges or a series
@@ -397,7 +395,22 @@ def fit(
                 best_theta[i], best_hist[i] = theta_t[i], hist_t[i]
                 for x, y in zip(jax.tree.leaves(best_diag), jax.tree.leaves(diag_t), strict=True):
                     x[i] = y[i]
-        floors = [_at_floor(best_diag, i, problems[i], noises[i]) for i in range(len(names))]
+        floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
+    # The robust scale once more, from the best fit's residuals. The early fit may have
+    # stopped far from its optimum (started from a poor guess) and read a spread the data
+    # do not have; with too wide a scale the outliers pull on the estimates. Where the
+    # spread is now clearly smaller, polish from the best point with it.
+    scales = [_spread(best_diag, i, noises[i]) for i in range(len(names))]
+    wider = [float(pr.scale) > 1.1 * s for pr, s in zip(problems, scales, strict=True)]
+    if any(wider):
+        say(f"polishing {[n for n, w in zip(names, wider, strict=True) if w]} at the noise read from the residuals")
+        problems, batch = _with_scales(problems, batch, [s if w else float(pr.scale) for pr, s, w in zip(problems, scales, wider, strict=True)])
+        theta_p, hist_p, diag_p = run(best_theta, batch)
+        for i in np.flatnonzero(wider):
+            best_theta[i], best_hist[i] = theta_p[i], hist_p[i]
+            for x, y in zip(jax.tree.leaves(best_diag), jax.tree.leaves(diag_p), strict=True):
+                x[i] = y[i]
+        floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     results = {}
     for i, b in enumerate(names):
         results[b] = _report(b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
@@ -488,21 +501,33 @@ def _objective(diag, i, loss, problem):
     return float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
 
 
-def _inliers(diag, i, problem):
-    """Residuals, validity, and the inliers: within 4 robust standard deviations (1.4826
-    MAD of the valid residuals, floored at the noise level read from the data)."""
+def _spread(diag, i, floor) -> float:
+    """Robust standard deviation of ball i's valid residuals (1.4826 times their median
+    absolute deviation), floored at ``floor``."""
+    r, _, (valid, _, _) = diag
+    rv = np.asarray(r[i])[np.asarray(valid[i])]
+    mad = 1.4826 * np.median(np.abs(rv - np.median(rv))) if rv.size else 0.0
+    return max(float(mad), float(floor))
+
+
+def _with_scales(problems, batch, scales):
+    """The problems and their batch with new robust scales."""
+    problems = [eqx.tree_at(lambda p: p.scale, pr, np.float64(s)) for pr, s in zip(problems, scales, strict=True)]
+    return problems, eqx.tree_at(lambda p: p.scale, batch, np.asarray(scales, dtype=np.float64))
+
+
+def _inliers(diag, i, noise):
+    """Residuals, validity, and the inliers: within 4 robust standard deviations of the
+    residuals (``_spread``, floored at the noise level read from the data)."""
     r, _, (valid, _, _) = diag
     r, valid = np.asarray(r[i]), np.asarray(valid[i])
-    rv = r[valid]
-    mad = 1.4826 * np.median(np.abs(rv - np.median(rv))) if rv.size else 0.0
-    s = max(float(mad), float(problem.scale))
-    keep = valid & (np.abs(r) <= 4 * s)
+    keep = valid & (np.abs(r) <= 4 * _spread(diag, i, noise))
     return r, valid, keep
 
 
-def _at_floor(diag, i, problem, noise) -> bool:
+def _at_floor(diag, i, noise) -> bool:
     """The rms of the inliers is within 30% of the noise level read from the data."""
-    r, valid, keep = _inliers(diag, i, problem)
+    r, valid, keep = _inliers(diag, i, noise)
     rms = math.sqrt(np.mean(r[keep] ** 2)) if keep.any() else math.inf
     return rms <= 1.3 * noise
 
@@ -547,7 +572,7 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
     at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range
     J = np.where(at_bound[None, :], 0.0, J / np.where(at_bound, 1.0, dphi)[None, :])
     w = robust_weight(r / problem.scale, loss)
-    r_all, valid_np, keep = _inliers(diag, i, problem)
+    r_all, valid_np, keep = _inliers(diag, i, noise)
     n_obs = int(np.asarray(problem.mask).any(axis=1).sum())
     rms = math.sqrt(np.mean(r_all[keep] ** 2)) if keep.any() else math.nan
     # Gauss-Newton covariance with robust weights and the residual noise estimate.

@@ -79,18 +79,10 @@ def _data(scene, truth, seed, noise, drop=0.05):
     return data
 
 
-_ZENO_MISS = ("bocce (slow, Zeno on a tread) ends in a local minimum at seed 4: e within 0.003 "
-              "of the truth, but rms 3x the noise despite the multi-start; the fit reports it "
-              "as above the noise floor")
-
-
-@pytest.mark.parametrize("seed", [
-    0, 1,
-    2,
-    3,
-    pytest.param(4, marks=pytest.mark.xfail(strict=True, reason=_ZENO_MISS)),
-    5,
-])
+# Seeds 4 and 18 failed before the robust scale was read again from the best fit (and, for
+# a ball without an early window, not from its early run): seed 4's Zeno ball ended in a
+# local minimum, seed 18's golf ball counted its outliers as inliers.
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5, 18])
 def test_recovery_synthetic(stairs, seed):
     truth, events = _draw_truth(stairs, seed)
     noise = NOISES[seed % 3]
@@ -116,10 +108,9 @@ def test_recovery_synthetic(stairs, seed):
 
 
 def test_stderr_calibrated(stairs):
-    """Over several seeds the errors divided by their standard errors have rms ~ 1 (the
-    seeds where bocce is not recovered are left out; see test_recovery_synthetic)."""
+    """Over several seeds the errors divided by their standard errors have rms ~ 1."""
     z = []
-    for seed in (0, 1, 3, 5, 6, 7, 8):
+    for seed in range(9):
         truth, _ = _draw_truth(stairs, seed)
         result = estim.fit(stairs, _data(stairs, truth, seed, NOISES[seed % 3]))
         for b in BALLS:
