@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._config import FIT_COMPILE, jit, require_x64
-from ._initial import Initial, initial_guess
+from ._initial import MU_DEFAULT, MU_RANGE, Initial, initial_guess
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, array_namespace, robust_loss, robust_weight
 from ._ode import OdeSettings
@@ -383,6 +383,10 @@ def fit(
                 phi = _to_physical(starts[i], free, problems[i].fixed)
                 if "e" in free:
                     phi[0] = grid[attempt]
+                if _mu_clipped(inits[i], free, fixed.get(names[i], {})):
+                    # A start clipped to its range is no information, and at mu_t = 1 the
+                    # sigmoid holds the parameter still: the default instead.
+                    phi[1] = MU_DEFAULT
                 for n, spread in (("mu_t", 0.02), ("vx0", 0.03)):
                     if n in free:
                         k = PARAMETERS.index(n)
@@ -499,6 +503,11 @@ def _check_inputs(scene, data, fixed) -> None:
 def _objective(diag, i, loss, problem):
     r, _, (valid, _, _) = diag
     return float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
+
+
+def _mu_clipped(init: Initial, free, fixed) -> bool:
+    """Whether mu_t is fitted from a start that the data did not give: clipped to its range."""
+    return "mu_t" in free and "mu_t" not in fixed and not MU_RANGE[0] < init.mu_t < MU_RANGE[1]
 
 
 def _spread(diag, i, floor) -> float:

@@ -77,8 +77,11 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
     A run grows while the next sample lies on the run's line of w to within
     ``max(6 sigma, 1 mm)``; a sample off the line is an outlier if the one after it is back on
     the line, and a bounce if the next ``min_points - 1`` samples also leave it upward. Runs
-    shorter than ``min_points``, or without vertical motion beyond the noise (the unresolved
-    tail of a Zeno series, or a ball at rest), end the segmentation.
+    shorter than ``min_points``, or without vertical motion beyond the noise (a height range
+    below 8 sigma, at least 3 mm: the unresolved tail of a Zeno series, or a ball at rest),
+    end the segmentation. (The range of pure noise over a hundred samples is about 5 sigma;
+    the bound used to be 3 times the line tolerance, 18 sigma, which in 3 mm noise ended the
+    segmentation at the first flight lower than 5 cm.)
     """
     ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(z)
     t, x, z = t[ok], x[ok], z[ok]
@@ -107,7 +110,7 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
                 j += 1
                 continue
             break
-        if np.ptp(z[members]) < 3 * tol:
+        if np.ptp(z[members]) < max(8.0 * (sigma if np.isfinite(sigma) else 0.002), 3e-3):
             if not flights:  # still in the hand before the release: skip
                 i = j
                 continue
@@ -118,12 +121,21 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
     return flights, sigma
 
 
-def initial_guess(t, x, z, g, *, release_time=0.0, e_default=0.7, mu_default=0.95):
+# Where a start for e or mu_t is clipped to (a median of one or two noisy bounces can fall
+# outside), and the value taken without a resolved bounce.
+E_RANGE, MU_RANGE = (0.05, 0.99), (0.5, 1.0)
+E_DEFAULT, MU_DEFAULT = 0.7, 0.95
+# Residuals about the flights (x and z) from which their spread is the noise level; with
+# fewer, the larger of that and the second-difference estimate.
+TRUSTED_RESIDUALS = 60
+
+
+def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_default=MU_DEFAULT):
     """Starting values (e, mu_t, vx0, vz0, x0, z0) for one track, from its flights.
 
-    e and mu_t are the medians over the resolved bounces (clipped to [0.05, 0.99] and
-    [0.5, 1]); without a resolved bounce they take the defaults, and the fit reports them as
-    not identifiable from the data.
+    e and mu_t are the medians over the resolved bounces (clipped to ``E_RANGE`` and
+    ``MU_RANGE``); without a resolved bounce they take the defaults, and the fit reports them
+    as not identifiable from the data.
     """
     flights, sigma = split_flights(np.asarray(t, float), np.asarray(x, float), np.asarray(z, float), g)
     if not flights:
@@ -160,9 +172,9 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=0.7, mu_default=0.9
         mad = 1.4826 * np.median(np.abs(res - np.median(res)))
         from_flights = float(mad * np.sqrt(res.size / (res.size - 4 * len(flights))))
         # Few samples in flights (a ball that soon rests): do not trust a small estimate.
-        sigma = from_flights if res.size >= 60 or not np.isfinite(sigma) else max(from_flights, sigma)
-    e = float(np.clip(np.median(es), 0.05, 0.99)) if es else e_default
-    mu = float(np.clip(np.median(mus), 0.5, 1.0)) if mus else mu_default
+        sigma = from_flights if res.size >= TRUSTED_RESIDUALS or not np.isfinite(sigma) else max(from_flights, sigma)
+    e = float(np.clip(np.median(es), *E_RANGE)) if es else e_default
+    mu = float(np.clip(np.median(mus), *MU_RANGE)) if mus else mu_default
     return Initial(
         e=e,
         mu_t=mu,

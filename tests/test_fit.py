@@ -79,10 +79,12 @@ def _data(scene, truth, seed, noise, drop=0.05):
     return data
 
 
-# Seeds 4 and 18 failed before the robust scale was read again from the best fit (and, for
-# a ball without an early window, not from its early run): seed 4's Zeno ball ended in a
-# local minimum, seed 18's golf ball counted its outliers as inliers.
-@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5, 18])
+# Each of the later seeds failed before one change of the pipeline (docs/pages/fitting.md):
+# 4, a Zeno ball's robust scale read from a run that had stopped far from its optimum; 18,
+# outliers counted as inliers at too wide a scale; 11 and 47, no bounce resolved in 3 mm
+# noise (the flight splitter stopped at the first low flight), and a local minimum; 46, a
+# start at mu_t = 1, where the sigmoid holds mu_t still, for every restart.
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5, 11, 18, 46, 47])
 def test_recovery_synthetic(stairs, seed):
     truth, events = _draw_truth(stairs, seed)
     noise = NOISES[seed % 3]
@@ -107,6 +109,23 @@ def test_recovery_synthetic(stairs, seed):
         assert bf.n_obs >= 139 - 7 - 3  # NaN rows out; lost coordinates leave the row
 
 
+@pytest.mark.parametrize(("seed", "ball", "n_true"), [(47, "golf", 5), (50, "pingpong", 3)])
+def test_start_resolves_low_flights(stairs, seed, ball, n_true):
+    """In 3 mm noise the splitter resolves the bounces before the flights drop below ~2 cm
+    (the true times, from the exact events, to one frame), and reads e and mu_t from them;
+    it used to stop at the first flight lower than 18 noise levels (no bounce resolved)."""
+    from estim._initial import initial_guess
+
+    truth, events = _draw_truth(stairs, seed)
+    t, pos = _data(stairs, truth, seed, 0.003)[ball]
+    init = initial_guess(t, pos[:, 0], pos[:, 2], float(stairs.gravity))
+    true_times = [te for te, _, _ in events[ball]][:n_true]
+    assert len(init.bounces) == n_true
+    assert np.allclose(init.bounces, true_times, atol=1 / FPS)
+    assert abs(init.e - truth[ball]["e"]) < 0.03
+    assert abs(init.mu_t - truth[ball]["mu_t"]) < 0.03
+
+
 def test_stderr_calibrated(stairs):
     """Over several seeds the errors divided by their standard errors have rms ~ 1."""
     z = []
@@ -129,13 +148,15 @@ def test_noise_read_from_data(stairs):
         truth, _ = _draw_truth(stairs, seed)
         noise = NOISES[seed % 3]
         result = estim.fit(stairs, _data(stairs, truth, seed, noise))
-        ratios += [(result.balls[b].noise_m / noise, len(result.balls[b].initial.flights)) for b in BALLS]
-    print("noise_m / noise, flights", ratios)
-    # The noise is read from the spread about each flight's parabola: within 25% where
-    # several flights are resolved; a ball that soon rests gives few samples, and then the
-    # larger of two estimates (a factor 2 at most).
-    for ratio, flights in ratios:
-        assert abs(ratio - 1) < (0.25 if flights >= 3 else 1.0), (ratio, flights)
+        ratios += [(result.balls[b].noise_m / noise, sum(f.n for f in result.balls[b].initial.flights))
+                   for b in BALLS]
+    print("noise_m / noise, samples in flights", ratios)
+    # The noise is read from the spread about each flight's parabola (x and z): within 25%
+    # from 100 samples in flights (the MAD of 200 residuals has a relative spread of ~8%);
+    # a ball that soon rests gives few, and then the larger of two estimates (a factor 2 at
+    # most).
+    for ratio, n in ratios:
+        assert abs(ratio - 1) < (0.25 if n >= 100 else 1.0), (ratio, n)
 
 
 def _far_start_fit(stairs, e0):

@@ -14,7 +14,8 @@ An after-bounce fit measures e when e is identifiable (a bounce inside its windo
 standard error) and its rms residual is at most ``RMS_OK_PX``; every other file is listed
 in the table with the reason it is not used.
 
-``--drag-check`` also runs the same pipeline on simulated drops with quadratic air drag
+``--restarts N`` sets the fit's restarts (default 5; 0 shows the minima the restarts
+avoid). ``--drag-check`` also runs the same pipeline on simulated drops with quadratic air drag
 and a known e (written to a temporary folder): how far the drag-free fit reads e from the
 truth at the speeds of these drops.
 """
@@ -120,8 +121,10 @@ def scale_ratio(track):
 def main():
     estim.enable_compilation_cache()
     scene = estim.load_scene(SCENE)
-    if "--drag-check" in sys.argv[1:]:
+    args = sys.argv[1:]
+    if "--drag-check" in args:
         drag_check(scene)
+    restarts = int(args[args.index("--restarts") + 1]) if "--restarts" in args else 5
     rows = []
     for i in range(15):
         path = TABLE / f"tracked-{i}.txt"
@@ -129,7 +132,7 @@ def main():
         for k in (0, 1):
             try:
                 res, _, s, _ = estim.fit_pixels(path, scene, ball="pingpong", frame_interval=DT,
-                                                from_bounce=k, pad_to=400)
+                                                from_bounce=k, pad_to=400, restarts=restarts)
                 bf = res.balls["pingpong"]
                 row[f"from_bounce_{k}"] = {"e": bf.values["e"], "stderr_e": bf.stderr["e"],
                                            "rms_px": bf.rms_m / s, "noise_px": bf.noise_m / s,
