@@ -34,7 +34,7 @@ REFERENCE = {
     "batch_balls_per_s": "-",
 }
 
-_FIRST_CALL = r"""
+_SETUP = r"""
 import json, sys, time
 t0 = time.perf_counter()
 import jax
@@ -46,11 +46,27 @@ balls = [b for b in scene.balls if b.name in e]
 params = estim.Params([e[b.name] for b in balls], [float(sys.argv[3])] * len(balls),
                       [b.radius for b in balls], [b.position for b in balls],
                       [json.loads(sys.argv[4])] * len(balls))
+t_end = float(sys.argv[5])
 t2 = time.perf_counter()
-traj = estim.simulate(scene, params, float(sys.argv[5]))
+"""
+_FIRST_CALL = _SETUP + r"""
+traj = estim.simulate(scene, params, t_end)
 jax.block_until_ready(traj)
 t3 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "first_call_s": t3 - t2}))
+"""
+# The same first call under jit, by stages (JAX's ahead-of-time API): where its time goes.
+_FIRST_CALL_PARTS = _SETUP + r"""
+f = jax.jit(lambda p: estim.simulate(scene, p, t_end))
+traced = f.trace(params)
+t3 = time.perf_counter()
+lowered = traced.lower()
+t4 = time.perf_counter()
+compiled = lowered.compile()
+t5 = time.perf_counter()
+jax.block_until_ready(compiled(params))
+t6 = time.perf_counter()
+print(json.dumps({"trace_s": t3 - t2, "lower_s": t4 - t3, "compile_s": t5 - t4, "run_s": t6 - t5}))
 """
 
 
@@ -67,14 +83,14 @@ def _median_us(fn, arg, repeats: int, warmup: int = 3) -> float:
     return statistics.median(times) * 1e6
 
 
-def _first_call(scene_path: str, cache_dir: str | None = None) -> dict:
+def _first_call(scene_path: str, cache_dir: str | None = None, script: str = _FIRST_CALL) -> dict:
     cmd = [
-        sys.executable, "-c", _FIRST_CALL, scene_path, json.dumps(SEED["e"]),
+        sys.executable, "-c", script, scene_path, json.dumps(SEED["e"]),
         str(SEED["mu_t"]), json.dumps(list(SEED["velocity"])), str(SEED["t_end"]),
     ]
     env = dict(os.environ)
     if cache_dir:
-        cmd[2] = "import estim; estim.enable_compilation_cache(" + repr(cache_dir) + ")\n" + _FIRST_CALL
+        cmd[2] = "import estim; estim.enable_compilation_cache(" + repr(cache_dir) + ")\n" + script
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     if proc.returncode != 0:
         raise RuntimeError(f"first-call subprocess failed:\n{proc.stderr[-2000:]}")
@@ -117,6 +133,7 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     # same with JAX's persistent compilation cache (as the estim command uses it), warmed
     # by one run in another process.
     first = _first_call(scene_path)
+    parts = _first_call(scene_path, script=_FIRST_CALL_PARTS)
     with tempfile.TemporaryDirectory() as cache:
         _first_call(scene_path, cache)
         first_cached = _first_call(scene_path, cache)
@@ -135,6 +152,11 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     forward = jax.jit(lambda p: estim.simulate(scene, p, t_end))
     forward_us = _median_us(forward, three, repeats)
     eager_us = _median_us(lambda p: estim.simulate(scene, p, t_end), three, max(repeats // 4, 3))
+    # Its floor: a jitted function with the same arguments and results that computes
+    # nothing (JAX's dispatch and argument handling, and a buffer for each result).
+    shapes = jax.eval_shape(forward, three)
+    empty = jax.jit(lambda p: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes))
+    floor_us = _median_us(empty, three, repeats)
 
     # Gradient: d(golf final x)/d(e, mu_t, vx0), jacfwd, jitted. It uses the final state
     # only, so it keeps nothing else (keep=(), as the simulate docstring advises); the
@@ -171,11 +193,13 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     result = {
         "forward_us": forward_us,
         "forward_eager_us": eager_us,
+        "forward_floor_us": floor_us,
         "gradient_us": gradient_us,
         "gradient_all_us": gradient_all_us,
         "gradient": dict(zip(("e", "mu_t", "vx0"), gradient_value, strict=True)),
         "first_call_s": first["first_call_s"],
         "first_call_cached_s": first_cached["first_call_s"],
+        "first_call_parts_s": parts,
         "import_s": first["import_s"],
         "batch": batch,
         "batch_us": batch_us,
@@ -224,6 +248,10 @@ def format_speed(r: dict) -> str:
         row(f"batch {r['batch']} golf (balls/s)", f"{r['batch_balls_per_s']:.3g}", "batch_balls_per_s"),
         "",
         f"first call with the persistent compilation cache warm: {r['first_call_cached_s']:.3f} s",
+        "first call under jit, by stages (fresh process): "
+        + ", ".join(f"{k[:-2]} {v:.3f} s" for k, v in r["first_call_parts_s"].items()),
+        f"forward floor (a jitted call with the same arguments and results, computing nothing): "
+        f"{r['forward_floor_us']:.1f} us/call",
         f"forward without jit (estim.simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
         f"gradient keeping every part (keep=None): {r['gradient_all_us']:.1f} us/call",
         f"batch of {r['batch']}: {r['batch_us']:.1f} us/call, {r['batch_final_us']:.1f} us keeping "

@@ -177,6 +177,9 @@ def test_bench_speed_cpus_errors(capsys):
 
     if not hasattr(os, "sched_setaffinity"):
         pytest.skip("needs os.sched_setaffinity (Linux)")
+    import jax
+
+    jax.devices()  # JAX's backend has started in this process (whatever ran before)
     before = os.sched_getaffinity(0)
     assert "before JAX starts its backend" in run_error(capsys, "bench", "speed", "--cpus", "1")
     too_many = str(len(before) + 1)
@@ -214,6 +217,10 @@ def test_bench_speed_json(capsys):
                 "batch_balls_per_s", "targets", "machine"):
         assert key in out
     assert set(out["targets"]) == {"forward_us", "gradient_us", "first_call_s", "batch_balls_per_s"}
+    # the floor computes nothing, so it costs less than the forward call it bounds
+    assert 0 < out["forward_floor_us"] < out["forward_us"]
+    parts = out["first_call_parts_s"]
+    assert set(parts) == {"trace_s", "lower_s", "compile_s", "run_s"} and min(parts.values()) > 0
     assert out["machine"]["cpu_count"] >= 1 and out["machine"]["jax"]
     assert 1 <= out["machine"]["cpus_used"] <= out["machine"]["cpu_count"]
     # conftest imports estim before JAX starts its backend, so XLA took estim's threshold
