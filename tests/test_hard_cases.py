@@ -587,6 +587,29 @@ def test_mu_one_slides_after_the_bounces_then_flies_off_the_edge(stairs, path):
     assert_jacobian(jsmp[0, :, 0], np.stack([0 * ts, np.nan * ts, ts], 1), DTOL[path], 1e-12)
 
 
+@pytest.mark.parametrize("path", PATHS)
+def test_bounces_against_a_riser_with_a_vanishing_vx(stairs, path):
+    """Found by tests/test_properties.py: golf (r 0.05, e 0.625, mu_t 1) released touching
+    step2's riser (x = 0.9 + r) over step3, with vx = -5e-189 and vy = 0.5. Its bounces on
+    step3 are a series against the riser it touches without entering; the series' slab
+    test took the 1e-188 component of its direction for motion into the riser, and the
+    ball spent its 48 segments on single bounces. Truth: the series accumulates at
+    t_fall + T0 / (1 - e) at x = 0.95, and with mu_t = 1 and nothing across its path in y
+    the ball keeps vy: y(t) = 0.5 t at every sample."""
+    e, h, t_end = 0.625, 0.21, 2.3
+    ball = Ball(e, 1.0, (0.95, 0.0, 1.05 + h), (-5.146940322656966e-189, 0.5, 0.0), 0.05)
+    _, _, _, t_acc = drop(h, e)
+    ts = np.linspace(0.0, t_end, NT)
+    traj = run(stairs, params_of([ball]), t_end, path, ts)
+    ev = events(stairs, traj, 0)
+    first = next(x for x in ev if x[5] == "settle")
+    assert first[4] == ("step3", "+z")
+    assert first[0] == pytest.approx(t_acc, abs=TOL[path])
+    np.testing.assert_allclose(first[1][:2], [0.95, 0.5 * t_acc], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(traj.position[0])[:, :2],
+                               np.stack([np.full(NT, 0.95), 0.5 * ts], 1), rtol=0, atol=1e-9)
+
+
 # ---------------------------------------------------------------------------------------
 # Grazing
 # ---------------------------------------------------------------------------------------
