@@ -383,9 +383,7 @@ def fit(
                 phi = _to_physical(starts[i], free, problems[i].fixed)
                 if "e" in free:
                     phi[0] = grid[attempt]
-                if _mu_clipped(inits[i], free, fixed.get(names[i], {})):
-                    # A start clipped to its range is no information, and at mu_t = 1 the
-                    # sigmoid holds the parameter still: the default instead.
+                if _restart_mu_at_default(inits[i], free, fixed.get(names[i], {})):
                     phi[1] = MU_DEFAULT
                 for n, spread in (("mu_t", 0.02), ("vx0", 0.03)):
                     if n in free:
@@ -505,9 +503,11 @@ def _objective(diag, i, loss, problem):
     return float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
 
 
-def _mu_clipped(init: Initial, free, fixed) -> bool:
-    """Whether mu_t is fitted from a start that the data did not give: clipped to its range."""
-    return "mu_t" in free and "mu_t" not in fixed and not MU_RANGE[0] < init.mu_t < MU_RANGE[1]
+def _restart_mu_at_default(init: Initial, free, fixed) -> bool:
+    """Whether restarts start mu_t at ``MU_DEFAULT`` instead of its start from the data:
+    that start was clipped to its range (no information), or lies above the default, where
+    the sigmoid's slope mu (1 - mu) falls towards 0 and holds the parameter nearly still."""
+    return "mu_t" in free and "mu_t" not in fixed and not MU_RANGE[0] < init.mu_t <= MU_DEFAULT
 
 
 def _spread(diag, i, floor) -> float:
