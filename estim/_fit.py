@@ -275,8 +275,11 @@ def fit(
             ``y0`` the ball's y in the scene, ``vy0 = 0``, unless ``fixed`` says otherwise.
         fixed: per ball, values to hold fixed (or to start from, for free parameters).
         loss: ``"cauchy"`` (default), ``"huber"`` or ``"l2"``.
-        restarts: how many more starts (e on a grid over [0.3, 0.9]) to try for balls whose
-            fit misses the noise floor.
+        restarts: how many more starts (e on a grid over [0.3, 0.9]; mu_t and vx0 from the
+            data, slightly perturbed, mu_t from 0.95 where the data's value was clipped to
+            its range or lies above 0.95) to try for balls whose fit misses the noise floor.
+            After them, a ball whose residuals' spread is clearly below the robust scale it
+            was fitted with is polished with that spread (module docstring, step 4).
         progress: called with a short message at each stage.
 
     Raises:
