@@ -394,12 +394,10 @@ def fit(
                         phi[k] = phi[k] + spread * rng.uniform(-1, 1)
                 phi[:2] = np.clip(phi[:2], 0.02, 0.995)
                 trial[i] = _to_theta(phi, free)
-        theta_t, hist_t, diag_t = run(trial, batch)
+        tried = run(trial, batch)
         for i in range(len(names)):
-            if _objective(diag_t, i, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
-                best_theta[i], best_hist[i] = theta_t[i], hist_t[i]
-                for x, y in zip(jax.tree.leaves(best_diag), jax.tree.leaves(diag_t), strict=True):
-                    x[i] = y[i]
+            if _objective(tried[2], i, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
+                _adopt((best_theta, best_hist, best_diag), tried, i)
         floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     # The robust scale once more, from the best fit's residuals. The early fit may have
     # stopped far from its optimum (started from a poor guess) and read a spread the data
@@ -410,11 +408,9 @@ def fit(
     if any(wider):
         say(f"polishing {[n for n, w in zip(names, wider, strict=True) if w]} at the noise read from the residuals")
         problems, batch = _with_scales(problems, batch, [s if w else float(pr.scale) for pr, s, w in zip(problems, scales, wider, strict=True)])
-        theta_p, hist_p, diag_p = run(best_theta, batch)
+        polished = run(best_theta, batch)
         for i in np.flatnonzero(wider):
-            best_theta[i], best_hist[i] = theta_p[i], hist_p[i]
-            for x, y in zip(jax.tree.leaves(best_diag), jax.tree.leaves(diag_p), strict=True):
-                x[i] = y[i]
+            _adopt((best_theta, best_hist, best_diag), polished, i)
         floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     results = {}
     for i, b in enumerate(names):
@@ -504,6 +500,13 @@ def _check_inputs(scene, data, fixed) -> None:
 def _objective(diag, i, loss, problem):
     r, _, (valid, _, _) = diag
     return float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
+
+
+def _adopt(best, result, i) -> None:
+    """Ball i of ``best`` (writable NumPy copies of a run's point, history and diagnostics)
+    takes its values from the run ``result``."""
+    for x, y in zip(jax.tree.leaves(best), jax.tree.leaves(result), strict=True):
+        x[i] = y[i]
 
 
 def _restart_mu_at_default(init: Initial, free, fixed) -> bool:

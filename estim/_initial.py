@@ -86,7 +86,9 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
     ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(z)
     t, x, z = t[ok], x[ok], z[ok]
     sigma = robust_noise(t, z, g) if noise is None else noise
-    tol = max(6.0 * (sigma if np.isfinite(sigma) else 0.002), 1e-3)
+    level = sigma if np.isfinite(sigma) else 0.002
+    tol = max(6.0 * level, 1e-3)
+    still = max(8.0 * level, 3e-3)  # a height range below this is no vertical motion
     w = z + 0.5 * g * t * t
     flights = []
     i, n = 0, len(t)
@@ -110,7 +112,7 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
                 j += 1
                 continue
             break
-        if np.ptp(z[members]) < max(8.0 * (sigma if np.isfinite(sigma) else 0.002), 3e-3):
+        if np.ptp(z[members]) < still:
             if not flights:  # still in the hand before the release: skip
                 i = j
                 continue
