@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from ._demo import SEED, default_scene_path, seed_params
+from ._json import dump
 
 __all__ = ["run_speed", "format_speed", "run_fit_bench", "format_fit_bench", "TARGETS", "REFERENCE",
            "run_accuracy", "format_accuracy", "write_accuracy"]
@@ -714,7 +715,7 @@ def write_accuracy(r: dict, out_dir: str) -> list[str]:
         fh.write(table + "\n")
     plot_accuracy(r, paths[1])
     with open(paths[2], "w") as fh:
-        json.dump(r, fh, indent=1)
+        dump(r, fh, indent=1)
         fh.write("\n")
     page = os.path.join(out_dir, "accuracy.md")
     if os.path.isfile(page):

@@ -4,11 +4,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
+import re
 import sys
 
 from ._demo import SEED, default_scene_path, seed_params
+from ._json import dumps
 
 __all__ = ["main"]
 
@@ -39,8 +40,18 @@ def _positive_int(text: str) -> int:
     return value
 
 
+class _Parser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` that reads a negative number in scientific notation as a
+    value (``--vz0 -1e6``): argparse's own pattern knows ``-1`` and ``-1.5`` only, and takes
+    ``-1e6`` for an option. (Subparsers are made of the same class.)"""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="estim",
         description="Exact, differentiable simulation of balls bouncing in an MJCF scene.",
     )
@@ -232,6 +243,9 @@ def _cmd_simulate(args) -> int:
 
     import estim
 
+    from ._simulate import _check_outside
+    from ._tracks import MAX_ABS_POSITION, MAX_ABS_TIME
+
     e = args.e if args.e is not None else SEED["e"].get(args.ball)
     for name, value in (("--e", e), ("--mu-t", args.mu_t)):
         if value is not None and not 0.0 <= value <= 1.0:
@@ -247,7 +261,17 @@ def _cmd_simulate(args) -> int:
     position = [spec.position[i] if v is None else v
                 for i, v in enumerate((args.x0, args.y0, args.z0))]
     velocity = [args.vx0, args.vy0, args.vz0]
+    # The limits of the track reader (estim._tracks): beyond them the numbers are not
+    # metres and seconds of a tabletop experiment, whatever the simulator could do with them.
+    for axis, v in zip("xyz", position, strict=True):
+        if abs(v) > MAX_ABS_POSITION:
+            raise UsageError(f"--{axis}0 = {v:g} is not a position in metres (|{axis}0| > "
+                             f"{MAX_ABS_POSITION:g}); millimetres? estim never rescales")
+    if args.t_end > MAX_ABS_TIME:
+        raise UsageError(f"--t-end = {args.t_end:g} is not a time in seconds (> {MAX_ABS_TIME:g}); "
+                         "milliseconds? estim never rescales")
     params = estim.Params(e, args.mu_t, spec.radius, position, velocity)
+    _check_outside(scene, params, names=[args.ball])
     traj = estim.simulate(scene, params, args.t_end)
 
     ev = traj.events
@@ -306,7 +330,7 @@ def _cmd_simulate(args) -> int:
         }
 
     if args.json:
-        print(json.dumps(out))
+        print(dumps(out))
     else:
         print(_format_simulation(out))
     return 0
@@ -386,7 +410,7 @@ def _cmd_bench_speed(args) -> int:
 
     result = run_speed(batch=args.batch, repeats=args.repeats, scene_path=args.scene, cpus=args.cpus)
     if args.json:
-        print(json.dumps(result))
+        print(dumps(result))
     else:
         print(format_speed(result))
     return 0
@@ -396,7 +420,7 @@ def _cmd_bench_fit(args) -> int:
     from ._bench import format_fit_bench, run_fit_bench
 
     result = run_fit_bench(repeats=args.repeats)
-    print(json.dumps(result) if args.json else format_fit_bench(result))
+    print(dumps(result) if args.json else format_fit_bench(result))
     return 0
 
 
@@ -413,7 +437,7 @@ def _cmd_bench_accuracy(args) -> int:
     result = run_accuracy(repeats=repeats, quick=args.quick, say=_progress())
     paths = write_accuracy(result, out)
     if args.json:
-        print(json.dumps(result))
+        print(dumps(result))
     else:
         from ._bench import format_accuracy
 
@@ -454,7 +478,7 @@ def _cmd_effects(args) -> int:
                                            "vx0": args.vx0, "t_end": args.t_end}}
     out.update(report.to_json())
     if args.json:
-        print(json.dumps(out))
+        print(dumps(out))
     else:
         s = report.settings
         print(f"effect sizes in {scene_path}, {args.t_end} s, release at the scene's positions, "
@@ -573,7 +597,7 @@ def _cmd_fit(args) -> int:
         write_outputs(result, data, args.out, extra)
         say(f"wrote {os.path.join(args.out, 'fit.json')} and plots")
     if args.json:
-        print(json.dumps(payload, indent=2))
+        print(dumps(payload, indent=2))
     else:
         print(format_table(result))
         if extra:

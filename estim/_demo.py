@@ -3,11 +3,12 @@ the replays of the demo fit."""
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
+
+from ._json import dump
 
 __all__ = ["DEMO_TRACKS", "SEED", "SEED_SCENE", "run_demo", "format_summary", "seed_params"]
 
@@ -111,7 +112,7 @@ def run_demo(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "summary.json", "w") as fh:
-        json.dump(summary, fh, indent=2)
+        dump(summary, fh, indent=2)
         fh.write("\n")
     from ._plots import plot_energy, plot_heights
 

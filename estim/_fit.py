@@ -209,7 +209,7 @@ class BallFit:
     correlation: np.ndarray
     rms_m: float  # rms residual of the inliers (m)
     noise_m: float  # noise level read from the data (m)
-    n_obs: int  # valid samples
+    n_obs: int  # samples compared with the model (rows with at least one coordinate)
     n_outliers: int  # samples the robust loss set aside (|r| > 5 noise)
     n_bounces: int  # impacts of the fitted model within the data
     converged: bool
@@ -313,6 +313,8 @@ def fit(
         raise ValueError("no balls to fit")
     g = float(scene.gravity)
     fixed = fixed or {}
+    if "t0" not in free:
+        _check_release_time(data, fixed)
     starts, problems, inits = [], [], []
     n_max = max(len(np.asarray(data[b][0])) for b in names)
     for b in names:
@@ -416,6 +418,27 @@ def fit(
     for i, b in enumerate(names):
         results[b] = _report(b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
     return FitResult(results)
+
+
+# A track that starts this long after the release (s) is worth a word when its fit fails:
+# a video's clock rarely starts at the release, and the model's does.
+LATE_START = 1.0
+
+
+def _check_release_time(data, fixed) -> None:
+    """With the release time held fixed (default 0: the data's time origin), a sample before
+    it would have no model to compare with: refuse it rather than leave it out."""
+    for b, (t, pos) in data.items():
+        t, pos = np.asarray(t, dtype=np.float64), np.asarray(pos, dtype=np.float64)
+        release = float(fixed.get(b, {}).get("t0", 0.0))
+        early = np.flatnonzero((t < release) & np.any(np.isfinite(pos), axis=1))
+        if early.size:
+            raise ValueError(
+                f"ball {b!r}: {early.size} sample(s) lie before the release at t0 = {release:g} s "
+                f"(the first at t = {float(t[early[0]]):g} s); the model releases each ball at t0, "
+                "by default the data's t = 0: shift the times so that the release is at t = 0, "
+                "give the release time (fixed t0), or fit it (free t0; CLI: --also t0)"
+            )
 
 
 def _check_inputs(scene, data, fixed) -> None:
@@ -635,9 +658,16 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
             notes.append("the Gauss-Newton matrix is singular: no standard errors")
     n_imp = int(impacts)
     improvement = np.abs(np.diff(history[-4:])) if len(history) >= 4 else np.array([np.inf])
-    converged = bool(np.all(np.isfinite(history[-1:])) and np.all(improvement <= 1e-6 * max(abs(history[-1]), 1.0)))
-    if not at_floor:
+    converged = bool(np.all(np.isfinite(history[-1:])) and np.all(improvement <= 1e-6 * max(abs(history[-1]), 1.0))
+                     and math.isfinite(rms))
+    if not keep.any():
+        notes.append("no sample lies after the fitted release time t0: nothing was fitted")
+    elif not at_floor:
         notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {noise * 1e3:.2f} mm read from the data: a local minimum, or physics the model lacks (air drag)")
+        delay = float(np.min(problem.t[np.asarray(problem.mask).any(axis=1)])) - phi[PARAMETERS.index("t0")]
+        if delay > LATE_START:
+            notes.append(f"the first sample is {delay:.2f} s after the release at t0 = {phi[PARAMETERS.index('t0')]:g} s: "
+                         "if the data's clock does not start at the release, shift the times so that it does")
     values = {n: float(phi[PARAMETERS.index(n)]) for n in PARAMETERS}
     t_np = np.asarray(problem.t)
     return BallFit(

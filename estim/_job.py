@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -12,6 +11,7 @@ import numpy as np
 
 from ._fit import FitResult, fit
 from ._initial import split_flights
+from ._json import dump
 from ._scene import Scene, load_scene
 from ._tracks import (
     estimate_pixel_scale,
@@ -59,7 +59,7 @@ def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = N
     payload = result.to_json()
     payload.update(extra or {})
     with open(os.path.join(out_dir, "fit.json"), "w") as f:
-        json.dump(payload, f, indent=2)
+        dump(payload, f, indent=2)
     plot_fit(data, result, os.path.join(out_dir, "fit.png"))
     plot_residuals(data, result, os.path.join(out_dir, "residuals.png"))
     plot_loss_history(result, os.path.join(out_dir, "loss.png"))

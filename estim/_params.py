@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
 from ._scene import Scene
 
@@ -21,6 +21,18 @@ DRAG_COEFFICIENT = 0.47
 
 def _concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
+
+
+def _has_text(x) -> bool:
+    return isinstance(x, (str, bytes)) or (isinstance(x, (list, tuple)) and any(map(_has_text, x)))
+
+
+def _float64(name: str, x) -> Array:
+    """``x`` as a float64 array; text is refused, not parsed (a number read from a file as a
+    string is a bug upstream)."""
+    if _has_text(x):
+        raise TypeError(f"Params.{name} must be numbers, got {x!r}")
+    return jnp.asarray(x, dtype=jnp.float64)
 
 
 class Params(eqx.Module):
@@ -55,20 +67,31 @@ class Params(eqx.Module):
 
     def __init__(self, e, mu_t, radius, position, velocity, *, mass=None,
                  drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0)):
-        self.e = jnp.asarray(e, dtype=jnp.float64)
-        self.mu_t = jnp.asarray(mu_t, dtype=jnp.float64)
-        self.radius = jnp.asarray(radius, dtype=jnp.float64)
-        self.position = jnp.asarray(position, dtype=jnp.float64)
-        self.velocity = jnp.asarray(velocity, dtype=jnp.float64)
-        self.mass = None if mass is None else jnp.asarray(mass, dtype=jnp.float64)
-        self.drag_coefficient = jnp.asarray(drag_coefficient, dtype=jnp.float64)
-        self.spin = jnp.asarray(spin, dtype=jnp.float64)
+        self.e = _float64("e", e)
+        self.mu_t = _float64("mu_t", mu_t)
+        self.radius = _float64("radius", radius)
+        self.position = _float64("position", position)
+        self.velocity = _float64("velocity", velocity)
+        self.mass = None if mass is None else _float64("mass", mass)
+        self.drag_coefficient = _float64("drag_coefficient", drag_coefficient)
+        self.spin = _float64("spin", spin)
 
     def __check_init__(self):
         for name in ("position", "velocity", "spin"):
             x = getattr(self, name)
             if x.ndim == 0 or x.shape[-1] != 3:
                 raise ValueError(f"Params.{name} must have a last axis of length 3 (x, y, z), got shape {x.shape}")
+        fields = {"e": self.e.shape, "mu_t": self.mu_t.shape, "radius": self.radius.shape,
+                  "position": self.position.shape[:-1], "velocity": self.velocity.shape[:-1],
+                  "drag_coefficient": self.drag_coefficient.shape, "spin": self.spin.shape[:-1]}
+        if self.mass is not None:
+            fields["mass"] = self.mass.shape
+        try:
+            np.broadcast_shapes(*fields.values())
+        except ValueError:
+            shapes = ", ".join(f"{k} {v}" for k, v in fields.items() if v != ())
+            raise ValueError(f"Params: the fields' batch shapes do not broadcast together ({shapes}); "
+                             "give every field the same batch shape, or a scalar") from None
         checks = (
             ("e", self.e, lambda x: (x >= 0) & (x <= 1), "must lie in [0, 1]"),
             ("mu_t", self.mu_t, lambda x: (x >= 0) & (x <= 1), "must lie in [0, 1]"),
@@ -134,21 +157,15 @@ PARAM_CHECKS = (
 )
 
 
-def invalid_params(params: Params) -> Int[Array, ""]:
-    """0 if ``params`` pass every check of ``PARAM_CHECKS``, else 1 + the index of the
-    first that fails (for any ball)."""
-    bad = jnp.stack([~jnp.all(ok(params)) for _, ok in PARAM_CHECKS])
-    return jnp.where(jnp.any(bad), jnp.argmax(bad) + 1, 0).astype(jnp.int32)
-
-
-def check_runtime(params: Params, t_end) -> Params:
-    """The checks of ``Params.__check_init__``, inside ``jit``: one ``eqx.branched_error_if``
-    (each is a kernel of its own in the compiled program) naming the first that fails."""
-    code = invalid_params(params)
-    return eqx.branched_error_if(params, code > 0, jnp.maximum(code - 1, 0), [m for m, _ in PARAM_CHECKS])
-
-
 def check_t_end(t_end) -> None:
+    """``t_end`` is one finite time > 0 (its value is checked when concrete; inside a
+    user's jit, ``estim.simulate`` checks it in the program)."""
+    if isinstance(t_end, (str, bytes)):
+        raise TypeError(f"t_end must be a number (seconds), got {t_end!r}")
+    shape = np.shape(t_end)
+    if shape != ():
+        raise ValueError(f"t_end must be a single time (a scalar), got shape {shape}; "
+                         "every ball of a batch runs to the same t_end")
     if _concrete(t_end):
         value = float(np.asarray(t_end))
         if not (math.isfinite(value) and value > 0):

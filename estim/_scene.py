@@ -290,12 +290,24 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
         if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
     }
     boxes, planes, balls = {}, {}, []
+    ball_geom = {}  # body -> the name of its sphere
     for g in range(model.ngeom):
         name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
         body = int(model.geom_bodyid[g])
         kind = int(model.geom_type[g])
         if kind == mujoco.mjtGeom.mjGEOM_SPHERE and body in free_bodies:
             body_name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or name
+            if body in ball_geom:
+                raise ValueError(f"{source}: body {body_name!r} has two sphere geoms ({ball_geom[body]!r} "
+                                 f"and {name!r}); a ball is one sphere on a free body")
+            ball_geom[body] = name
+            offset = np.asarray(model.geom_pos[g], dtype=float)
+            if np.any(offset != 0):
+                # The ball's centre is its body's origin (the release point, and the point
+                # the replay moves); a sphere off that origin would be another point.
+                raise ValueError(f"{source}: sphere {name!r} sits at {offset.tolist()} from the "
+                                 f"origin of its body {body_name!r}; centre it on the body "
+                                 "(move the offset to the body's pos)")
             pos = tuple(float(v) for v in data.xpos[body])
             balls.append(
                 Ball(body_name, float(model.geom_size[g, 0]), float(model.body_mass[body]), pos)

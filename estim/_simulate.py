@@ -14,7 +14,7 @@ from jaxtyping import ArrayLike, Float
 from . import _ode
 from ._config import CLOSED_FORM_COMPILE, jit, keep_loop, require_x64, top_level
 from ._ode import OdeSettings
-from ._params import PARAM_CHECKS, Params, check_runtime, check_t_end, invalid_params
+from ._params import PARAM_CHECKS, Params, check_t_end
 from ._record import layout_of, pack, unpack
 from ._scene import Scene
 from ._solver import plan, segments_of
@@ -100,6 +100,15 @@ def simulate(
     Returns:
         A :class:`Trajectory`.
 
+    Raises:
+        ValueError: impossible inputs, named: parameters out of range or not finite, t_end
+            not a finite time > 0, ts outside ``[0, t_end]``, a ball that starts inside a
+            solid, bounds below 1. With concrete values these are checked in Python before
+            the call; inside a user's ``jit`` (traced values) the same checks run in the
+            compiled program, which raises with the same message.
+        RuntimeError: a ball needed more than ``max_segments`` (``max_steps``) and
+            ``throw`` is set (inside ``jit``, the program raises as above).
+
     Example:
         >>> scene = estim.load_scene("data/scenes/stairs.xml")
         >>> golf = estim.Params.for_ball(scene, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0, 0))
@@ -113,6 +122,9 @@ def simulate(
         raise TypeError(f"params must be an estim.Params, got {type(params).__name__}")
     check_t_end(t_end)
     keep = check_keep(keep)
+    for name, value in (("max_segments", max_segments), ("max_events", max_events), ("max_steps", max_steps)):
+        if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1):
+            raise ValueError(f"{name} must be an integer >= 1 (a static bound), got {value!r}")
     # Inside a transformation (jit, grad, make_jaxpr...) every value is traced; at top level,
     # concrete inputs stay NumPy until the compiled call (each eager JAX op costs a dispatch).
     traced = not top_level() or any(
@@ -195,9 +207,12 @@ def _flat_params(params: Params) -> Params:
 def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
     _ode.TRACE_COUNT += 1
     batch = params.batch_shape
-    if checks:
-        params = check_runtime(params, t_end)
     flat = _flat_params(params)
+    if checks:
+        code = jax.vmap(lambda prm: _input_code(scene, prm, t_end, ts))(flat)
+        first = jnp.min(jnp.where(code > 0, code, len(_INPUT_CHECKS) + 1))
+        fails = first <= len(_INPUT_CHECKS)
+        flat = eqx.branched_error_if(flat, fails, jnp.where(fails, first - 1, 0), list(_INPUT_CHECKS))
     # Plan every ball first, then replay only as many steps as the longest uses (estim._scan).
     plans = jax.vmap(lambda prm: _ode.plan(scene, prm, t_end, settings))(flat)
     n_used = jnp.max(plans.n_steps)
@@ -272,10 +287,10 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
         rows = pack(parts, layouts[-1])
         if not checks:
             return rows
-        # The ball's first failing parameter check (1-based), else len(PARAM_CHECKS) + 1
-        # if it is left incomplete, else 0.
-        code = invalid_params(prm)
-        return rows + (jnp.where(code > 0, code, jnp.where(pl.complete, 0, len(PARAM_CHECKS) + 1)),)
+        # The ball's first failing input check (1-based), else len(_INPUT_CHECKS) + 1 if it
+        # is left incomplete, else 0.
+        code = _input_code(scene, prm, t_end, ts)
+        return rows + (jnp.where(code > 0, code, jnp.where(pl.complete, 0, len(_INPUT_CHECKS) + 1)),)
 
     record, flags, *code = jax.lax.map(ball, params_rows)
     if keep != frozenset(KEEP):  # (check_keep made keep a frozenset)
@@ -293,7 +308,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
     if checks:
         # One check for the whole call, after the loop (each eqx.error_if is a kernel of
         # its own): the smallest nonzero code of the balls, if any.
-        messages = [message for message, _ in PARAM_CHECKS] + [_INCOMPLETE]
+        messages = list(_INPUT_CHECKS) + [_INCOMPLETE]
         first = jnp.min(jnp.where(code[0] > 0, code[0], len(messages) + 1))
         fails = first <= len(messages)
         record = eqx.branched_error_if(traj.record, fails, jnp.where(fails, first - 1, 0), messages)
@@ -301,25 +316,56 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
     return traj
 
 
-def _check_outside(scene: Scene, params: Params) -> None:
-    """A ball must not start inside a solid (checked when the values are concrete)."""
+# The argument checks of `simulate`, as they run inside a user's jit (outside it, the same
+# checks run in Python before the call, with the offending values in the message).
+_INPUT_CHECKS = tuple(message for message, _ in PARAM_CHECKS) + (
+    "t_end must be a finite time > 0 (seconds)",
+    "ts must be finite and lie in [0, t_end]",
+    "a ball starts inside a solid: release it outside every solid",
+)
+
+
+def _input_code(scene: Scene, prm: Params, t_end, ts):
+    """0 if one ball's inputs pass every check of ``_INPUT_CHECKS``, else 1 + the index of
+    the first that fails."""
+    inside_box, inside_plane = _inside(jnp, scene, prm.position[None], prm.radius[None])
+    bad = jnp.stack([~jnp.all(ok(prm)) for _, ok in PARAM_CHECKS] + [
+        ~(jnp.isfinite(t_end) & (t_end > 0)),
+        ~jnp.all(jnp.isfinite(ts) & (ts >= 0) & (ts <= t_end)),
+        jnp.any(inside_box) | jnp.any(inside_plane),
+    ])
+    return jnp.where(jnp.any(bad), jnp.argmax(bad) + 1, 0).astype(jnp.int32)
+
+
+def _inside(xp, scene: Scene, p, r):
+    """Which solids balls of centres ``p (n, 3)`` and radii ``r (n,)`` start inside (deeper
+    than 1 nm): ``(n, boxes)`` and ``(n, planes)`` booleans. A box's points within r of the
+    ball's centre: the L1 excess of the centre over the box's half sizes, as in the contact
+    table (estim._scene, eq. (1))."""
+    c, h = xp.asarray(scene.box_centre), xp.asarray(scene.box_half)
+    depth = xp.sum(xp.maximum(xp.abs(p[:, None, :] - c[None]) - h[None], 0.0), axis=-1)
+    n, s = xp.asarray(scene.plane_normal), xp.asarray(scene.plane_offset)
+    height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim._contact.inner)
+    return depth < r[:, None] - 1e-9, height < s[None] + r[:, None] - 1e-9
+
+
+def _check_outside(scene: Scene, params: Params, names=None) -> None:
+    """A ball must not start inside a solid (checked here when the values are concrete;
+    inside a user's jit by ``_input_code``). ``names``: the balls' names, for the message."""
     leaves = (params.position, params.radius, scene.box_centre)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return
     batch = params.batch_shape
     p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
     r = np.broadcast_to(np.asarray(params.radius), batch).reshape(-1)
-    c, h = np.asarray(scene.box_centre), np.asarray(scene.box_half)
-    depth = np.sum(np.maximum(np.abs(p[:, None, :] - c[None]) - h[None], 0.0), axis=-1)
-    inside_box = depth < r[:, None] - 1e-9
-    n, s = np.asarray(scene.plane_normal), np.asarray(scene.plane_offset)
-    inside_plane = (p @ n.T) < s[None] + r[:, None] - 1e-9
+    inside_box, inside_plane = _inside(np, scene, p, r)
     bad = np.flatnonzero(inside_box.any(axis=1) | inside_plane.any(axis=1))
     if bad.size:
         i = int(bad[0])
         hit = [scene.names[j] for j in np.flatnonzero(inside_box[i])]
         hit += [scene.names[scene.n_boxes + j] for j in np.flatnonzero(inside_plane[i])]
+        who = f"ball {i}" if names is None else f"ball {names[i]!r}"
         raise ValueError(
-            f"ball {i} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
+            f"{who} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
             f"than its radius {r[i]} to the solid (release it outside every solid)"
         )

@@ -197,7 +197,8 @@ def read_tracks_csv(path: str | os.PathLike, *, scene: Scene | None = None,
     if not os.path.isfile(path):
         raise FileNotFoundError(f"track file not found: {path}")
     known_balls = None if scene is None else [b.name for b in scene.balls]
-    with open(path, newline="") as f:
+    # utf-8-sig: a byte-order mark (spreadsheets save one) is an encoding mark, not text.
+    with open(path, newline="", encoding="utf-8-sig") as f:
         rows = list(csv.reader(f))
     header_line = next((i for i, r in enumerate(rows) if any(c.strip() for c in r)), None)
     if header_line is None:
@@ -386,7 +387,7 @@ def read_pixel_track(path, *, frame_interval: float, metres_per_pixel: float | N
         raise FileNotFoundError(f"pixel track file not found: {path}")
     if not (math.isfinite(frame_interval) and frame_interval > 0):
         raise ValueError(f"frame_interval must be a time > 0 (s), got {frame_interval!r}")
-    with open(path) as f:
+    with open(path, encoding="utf-8-sig") as f:
         lines = f.read().splitlines()
     while lines and not lines[-1].strip():
         lines.pop()

@@ -193,7 +193,19 @@ class Trajectory(eqx.Module):
 
     def evaluate(self, t: Float[Array, "*times"]) -> tuple[Array, Array]:
         """Position and velocity at times ``t`` (any shape), for every ball: exact on the
-        closed-form path, the solver's accuracy on the ODE path."""
+        closed-form path, the solver's accuracy on the ODE path. Every t must be finite and
+        lie in ``[0, t_end]`` (checked in Python for concrete values, in the program
+        inside ``jit``): the solution describes that interval only."""
+        t_end = self.final.t
+        if isinstance(t, jax.core.Tracer) or isinstance(t_end, jax.core.Tracer):
+            t = jnp.asarray(t, dtype=jnp.float64)
+            ok = jnp.all(jnp.isfinite(t)) & (jnp.min(t, initial=0.0) >= 0) & (jnp.max(t, initial=0.0) <= jnp.min(t_end))
+            t = eqx.error_if(t, ~ok, "Trajectory.evaluate: t must be finite and lie in [0, t_end]")
+        else:
+            tv, end = np.asarray(t, dtype=np.float64), float(np.min(np.asarray(t_end)))
+            if not np.all(np.isfinite(tv) & (tv >= 0) & (tv <= end)):
+                bad = tv[~(np.isfinite(tv) & (tv >= 0) & (tv <= end))].ravel()[:4].tolist()
+                raise ValueError(f"Trajectory.evaluate: t must be finite and lie in [0, t_end={end}], got {bad}")
         return self.solution.evaluate(t)
 
 

@@ -6,7 +6,8 @@ without surfaces (tests/test_scene.py), the track CSV's format errors (tests/tes
 ``estim simulate`` argument errors (tests/test_cli.py::test_bad_inputs) and ``estim fit``
 with an unknown ball or times out of order (tests/test_fit_cli.py).
 
-Nothing here compiles a simulation: every error is raised before.
+Nothing here compiles a simulation: every error is raised before. The same checks inside a
+user's jit: tests/test_simulate.py::test_argument_checks_run_inside_jit.
 """
 
 from __future__ import annotations
@@ -348,3 +349,110 @@ def test_fit_cli_scene_without_contact_surfaces(capsys, tmp_path):
     scene.write_text('<mujoco><worldbody><body name="golf" pos="0 0 1"><freejoint/>'
                      '<geom type="sphere" size="0.05"/></body></worldbody></mujoco>')
     cli_fails(capsys, ["fit", str(DEMO_CSV), "--scene", str(scene)], "no contact surfaces")
+
+
+# ---------------------------------------------------------------------------------------
+# Found by a bad-input audit (session 10): each was accepted silently or refused with a
+# message that did not name the problem.
+# ---------------------------------------------------------------------------------------
+
+
+def test_fit_rejects_samples_before_the_release(stairs, demo):
+    """Times before the release (t0, by default the data's t = 0) have no model to compare
+    with: they were masked, and a track with every time negative came back 'converged' with
+    rms NaN."""
+    t, p = demo_data(demo, ["golf"])["golf"]
+    n = int(np.sum(np.any(np.isfinite(p), axis=1)))
+    with pytest.raises(ValueError, match=rf"ball 'golf': {n} sample\(s\) lie before the release "
+                                         r"at t0 = 0 s \(the first at t = -5 s\).*shift the times"):
+        estim.fit(stairs, {"golf": (t - 5.0, p)})
+    early = int(np.sum((t < 0.1) & np.any(np.isfinite(p), axis=1)))
+    assert early > 0
+    with pytest.raises(ValueError, match=rf"{early} sample\(s\) lie before the release at t0 = 0.1 s"):
+        estim.fit(stairs, {"golf": (t, p)}, fixed={"golf": {"t0": 0.1}})
+
+
+def test_params_refuse_text_and_batches_that_do_not_broadcast():
+    with pytest.raises(TypeError, match=r"Params.e must be numbers, got '0.7'"):
+        estim.Params(**{**GOOD, "e": "0.7"})
+    with pytest.raises(TypeError, match=r"Params.position must be numbers"):
+        estim.Params(**{**GOOD, "position": (0.0, "0", 1.7)})
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast together \(e \(2,\), mu_t \(3,\)\)"):
+        estim.Params(**{**GOOD, "e": np.array([0.5, 0.7]), "mu_t": np.full(3, 0.9)})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "words"),
+    [
+        (dict(t_end=np.array([1.0, 2.0])), ValueError, r"t_end must be a single time \(a scalar\), got shape \(2,\)"),
+        (dict(t_end="1.0"), TypeError, "t_end must be a number"),
+        (dict(max_segments=0), ValueError, "max_segments must be an integer >= 1"),
+        (dict(max_events=2.5), ValueError, "max_events must be an integer >= 1"),
+    ],
+)
+def test_simulate_rejects_malformed_t_end_and_bounds(stairs, kwargs, error, words):
+    kwargs = {"t_end": 1.0, **kwargs}
+    with pytest.raises(error, match=words):
+        estim.simulate(stairs, estim.Params(**GOOD), kwargs.pop("t_end"), **kwargs)
+
+
+BALL_SCENE = ('<mujoco><worldbody><geom type="plane" size="5 5 0.1"/>'
+              '<body name="golf" pos="0 0 1"><freejoint/>{geoms}</body></worldbody></mujoco>')
+
+
+@pytest.mark.parametrize(
+    ("geoms", "words"),
+    [
+        ('<geom name="a" type="sphere" size="0.05"/><geom name="b" type="sphere" size="0.02" pos="0.1 0 0"/>',
+         r"body 'golf' has two sphere geoms \('a' and 'b'\)"),
+        ('<geom name="a" type="sphere" size="0.05" pos="0.3 0 0"/>',
+         r"sphere 'a' sits at \[0.3, 0.0, 0.0\] from the origin of its body 'golf'"),
+    ],
+)
+def test_scene_ball_is_one_sphere_centred_on_its_body(tmp_path, geoms, words):
+    """A second sphere on a ball's body was read as a second ball of the same name; a sphere
+    off its body's origin was released from the origin, not where MuJoCo draws it."""
+    path = tmp_path / "ball.xml"
+    path.write_text(BALL_SCENE.format(geoms=geoms))
+    with pytest.raises(ValueError, match=words):
+        estim.load_scene(path)
+
+
+def test_tracks_csv_with_a_byte_order_mark(tmp_path):
+    """Spreadsheets save UTF-8 with a byte-order mark; it is not part of the header."""
+    text = DEMO_CSV.read_text()
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    plain, bom = read_tracks_csv(DEMO_CSV), read_tracks_csv(tmp_path / "bom.csv")
+    assert bom.balls == plain.balls
+    for b in plain.balls:
+        np.testing.assert_array_equal(bom.t[b], plain.t[b])
+        np.testing.assert_array_equal(bom.position[b], plain.position[b])
+
+
+def test_simulate_cli_reads_negative_numbers_in_scientific_notation():
+    from estim._cli import build_parser
+
+    args = build_parser().parse_args(["simulate", "--ball", "golf", "--vz0", "-1e6", "--x0", "-.5E-1"])
+    assert args.vz0 == -1e6 and args.x0 == -0.05
+
+
+def test_simulate_cli_names_the_ball_and_the_unit(capsys):
+    cli_fails(capsys, ["simulate", "--ball", "golf", "--x0", "0.0", "--z0", "1.0"],
+              "ball 'golf' starts inside 'step1'")
+    cli_fails(capsys, ["simulate", "--ball", "golf", "--x0", "-200", "--z0", "1700"],
+              "--x0 = -200 is not a position in metres", "millimetres")
+    cli_fails(capsys, ["simulate", "--ball", "golf", "--t-end", "23000"],
+              "--t-end = 23000 is not a time in seconds", "milliseconds")
+
+
+def test_json_is_strict():
+    """fit.json and every --json: undefined numbers are null (NaN is not JSON)."""
+    import json
+
+    from estim._json import dumps
+
+    obj = {"a": math.nan, "b": [1.0, math.inf, np.float64(-math.inf)], "c": np.arange(2),
+           "d": (np.float64(2.5), np.bool_(True)), "e": np.array([[math.nan, 1.0]])}
+    text = dumps(obj)
+    assert json.loads(text) == {"a": None, "b": [1.0, None, None], "c": [0, 1], "d": [2.5, True],
+                                "e": [[None, 1.0]]}

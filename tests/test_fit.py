@@ -9,6 +9,7 @@ whole module compiles the fit once (~20 s) and each further fit takes < 1 s.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import pytest
 
 import estim
 from estim._fit import PARAMETERS, _plan_at, _Problem, _residuals
+from estim._json import dumps
 from estim._loss import robust_loss
 from estim._trajectory import REST
 
@@ -209,6 +211,20 @@ def test_missing_physics_is_reported(stairs):
     assert any("above the noise level" in n for n in bf.notes), bf.notes
 
 
+def test_late_clock_is_pointed_out(stairs):
+    """A track whose clock starts 5 s after the release (a video's clock) cannot be fitted
+    with the release at t = 0; the fit says so, and says why."""
+    truth, _ = _draw_truth(stairs, 0)
+    data = _data(stairs, truth, 0, 0.002)
+    t, p = data["golf"]
+    data["golf"] = (t + 5.0, p)
+    balls = estim.fit(stairs, data).balls
+    assert not balls["golf"].at_noise_floor
+    assert any("the first sample is 5.00 s after the release" in n for n in balls["golf"].notes), balls["golf"].notes
+    for b in ("bocce", "pingpong"):  # tracks that start at the release get no such note
+        assert not any("after the release" in n for n in balls[b].notes), balls[b].notes
+
+
 def test_loss_gradient_matches_finite_differences(stairs):
     truth, events = _draw_truth(stairs, 1)
     ball = "golf"
@@ -264,6 +280,12 @@ def test_no_bounce_not_identifiable(stairs):
     assert abs(bf.values["vx0"] - truth["pingpong"]["vx0"]) < max(3 * bf.stderr["vx0"], 0.01)
     js = result.to_json()["balls"]["pingpong"]
     assert js["stderr"]["e"] is None and js["stderr"]["vx0"] is not None
+    # fit.json is strict JSON: the correlations of e are undefined, written as null.
+    text = dumps(result.to_json())
+    assert "NaN" not in text
+    corr = json.loads(text)["balls"]["pingpong"]["correlation"]
+    i, j = corr["names"].index("e"), corr["names"].index("vx0")
+    assert corr["matrix"][i][j] is None and corr["matrix"][j][j] == 1.0
     # the other balls are fitted as usual
     for b in ("bocce", "golf"):
         assert abs(result.balls[b].values["e"] - truth[b]["e"]) < 0.01

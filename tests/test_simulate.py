@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import (
@@ -25,6 +27,8 @@ from conftest import (
     seed_arrays,
     seed_release,
 )
+
+import estim
 
 # ---------------------------------------------------------------------------------------
 # An independent reference: the seed model, event by event, in plain numpy.
@@ -652,7 +656,7 @@ def test_dense_output(stairs, seed_traj):
     # away) and the event time itself give the event's position.
     for i in range(3):
         n = int(seed_traj.events.count[i])
-        t = np.full(NT, SEED_T_END)
+        t = np.full(NT, SEED_T_END / 2)  # (the slots past n: any time inside [0, t_end])
         t[:n] = np.asarray(seed_traj.events.t[i, :n])
         times = np.stack([np.nextafter(t, -np.inf), t, np.nextafter(t, np.inf)])
         p, v = evaluate(seed_traj, times)
@@ -697,3 +701,48 @@ def test_slide_off_a_bevel_then_fall(stairs):
         np.asarray(traj.final.position[0]), [x_ground, 0.0, r], rtol=0, atol=1e-9
     )
     np.testing.assert_array_equal(np.asarray(traj.final.velocity[0]), [0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("air", [False, True], ids=["closed_form", "ode"])
+def test_argument_checks_run_inside_jit(stairs, air):
+    """Inside a user's jit the values are traced, so simulate's Python checks cannot see
+    them; the same checks run in the compiled program and raise with the same words. (Before
+    they did, t_end = -1 ran the parabola backwards through the ground, and t_end = NaN
+    reported too few segments.)"""
+    scene = stairs.with_air(estim.Air(density=1.204)) if air else stairs
+    golf = scene.ball("golf")
+
+    @jax.jit
+    def final(t_end, ts, position, e):
+        p = estim.Params(e, 0.98, golf.radius, position, jnp.array([1.15, 0.0, 0.0]), mass=golf.mass)
+        return estim.simulate(scene, p, t_end, ts=ts, keep=("samples",)).final.position
+
+    good = dict(t_end=1.0, ts=jnp.array([0.0, 0.5, 1.0]), position=jnp.array([-0.2, 0.0, 1.7]), e=0.7)
+    ref = estim.simulate(scene, estim.Params(0.7, 0.98, golf.radius, (-0.2, 0.0, 1.7), (1.15, 0.0, 0.0),
+                                             mass=golf.mass), 1.0).final.position
+    np.testing.assert_allclose(np.asarray(final(**good)), np.asarray(ref), rtol=0, atol=1e-12)
+    bad = [
+        (dict(t_end=-1.0), "t_end must be a finite time > 0"),
+        (dict(t_end=jnp.nan), "t_end must be a finite time > 0"),
+        (dict(ts=jnp.array([0.0, 1.5, 1.0])), r"ts must be finite and lie in \[0, t_end\]"),
+        (dict(ts=jnp.array([-0.1, 0.5, 1.0])), r"ts must be finite and lie in \[0, t_end\]"),
+        (dict(position=jnp.array([0.0, 0.0, 1.0])), "a ball starts inside a solid"),  # step1
+        (dict(position=jnp.array([2.0, 0.0, -0.02])), "a ball starts inside a solid"),  # the ground
+        (dict(e=1.5), r"e must lie in \[0, 1\]"),
+    ]
+    for change, words in bad:
+        with pytest.raises(ValueError, match=words):
+            jax.block_until_ready(final(**{**good, **change}))
+
+
+def test_evaluate_refuses_times_outside_the_solution(stairs, seed_traj):
+    """The dense solution covers [0, t_end]: outside it, evaluate raises (in Python for
+    concrete times, in the program inside jit) instead of extrapolating a parabola."""
+    t_end = float(np.asarray(seed_traj.final.t).ravel()[0])
+    for t in (-0.1, t_end + 0.5, np.nan, [0.5, t_end * 2]):
+        with pytest.raises(ValueError, match=r"t must be finite and lie in \[0, t_end"):
+            seed_traj.evaluate(t)
+    inside = jax.jit(lambda t: seed_traj.evaluate(t)[0])
+    np.testing.assert_allclose(np.asarray(inside(t_end)), np.asarray(seed_traj.final.position), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match=r"t must be finite and lie in \[0, t_end\]"):
+        jax.block_until_ready(inside(t_end + 0.5))
