@@ -17,7 +17,7 @@ from ._ode import OdeSettings
 from ._params import PARAM_CHECKS, Params, check_t_end
 from ._record import layout_of, pack, unpack
 from ._scene import Scene
-from ._solver import plan, segments_of
+from ._solver import TRAIN, plan, segments_of
 from ._trajectory import (
     KEEP,
     ClosedFormSolution,
@@ -177,9 +177,11 @@ def simulate(
 
 
 _INCOMPLETE = (
-    "a ball needed more closed-form segments than max_segments; increase max_segments "
-    "(this happens for balls trapped between walls, not for Zeno bounce series, which are "
-    "summed exactly), or pass throw=False and inspect Trajectory.complete"
+    "a ball needed more closed-form segments than max_segments, or its path entered a solid "
+    "(a degenerate contact the closed forms missed: a graze or a slide exactly at an edge); "
+    "increase max_segments (a ball bouncing where no series can be summed, against an edge "
+    "or a bevel or between walls, takes a segment per bounce), move the ball off the "
+    "degenerate point, or pass throw=False and inspect Trajectory.complete"
 )
 
 
@@ -282,7 +284,8 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
         last = jnp.maximum(pl.n_segments - 1, 0)
         final = State(t_end, segments.p1[last], segments.v1_post[last])
         solution = ClosedFormSolution(segments=segments, structure=pl.decisions, e=prm.e, mu_t=prm.mu_t, gravity=g)
-        parts = trajectory_parts(pos, vel, events, final, pl.complete, solution, keep)
+        complete = pl.complete & _stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
+        parts = trajectory_parts(pos, vel, events, final, complete, solution, keep)
         layouts.append(layout_of(parts, 0))
         rows = pack(parts, layouts[-1])
         if not checks:
@@ -290,7 +293,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
         # The ball's first failing input check (1-based), else len(_INPUT_CHECKS) + 1 if it
         # is left incomplete, else 0.
         code = _input_code(scene, prm, t_end, ts)
-        return rows + (jnp.where(code > 0, code, jnp.where(pl.complete, 0, len(_INPUT_CHECKS) + 1)),)
+        return rows + (jnp.where(code > 0, code, jnp.where(complete, 0, len(_INPUT_CHECKS) + 1)),)
 
     record, flags, *code = jax.lax.map(ball, params_rows)
     if keep != frozenset(KEEP):  # (check_keep made keep a frozenset)
@@ -347,6 +350,26 @@ def _inside(xp, scene: Scene, p, r):
     n, s = xp.asarray(scene.plane_normal), xp.asarray(scene.plane_offset)
     height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim._contact.inner)
     return depth < r[:, None] - 1e-9, height < s[None] + r[:, None] - 1e-9
+
+
+def _stays_outside(scene: Scene, radius, decisions, segments, n_segments):
+    """Whether the planned path keeps the ball outside every solid at the start, middle and
+    end of each segment it uses (the middle of a bounce series is not on one parabola, and
+    is not tested). A guard, not a solver: the closed forms find every contact of a
+    generic path, and this catches a degenerate one they miss (found: a flight whose apex
+    grazes a tread top 1e-12 m inside its edge, a ball sliding off an edge from 1e-12 m
+    inside it; docs/pages/hard-cases.md) so that the ball is reported incomplete instead
+    of passing through the solid."""
+    s = jax.lax.stop_gradient(segments)
+    tau = 0.5 * (s.t1 - s.t0)[:, None]
+    middle = s.p0 + s.v0 * tau + 0.5 * s.acc * tau * tau
+    middle = jnp.where((decisions.kind == TRAIN)[:, None], s.p0, middle)
+    points = jnp.stack([s.p0, middle, s.p1], axis=1).reshape(-1, 3)
+    used = jnp.repeat(jnp.arange(s.t0.shape[0]) < n_segments, 3)
+    r = jax.lax.stop_gradient(radius)
+    inside_box, inside_plane = _inside(jnp, scene, points, jnp.broadcast_to(r, used.shape))
+    inside = jnp.any(inside_box, axis=1) | jnp.any(inside_plane, axis=1)
+    return ~jnp.any(used & inside)
 
 
 def _check_outside(scene: Scene, params: Params, names=None) -> None:
