@@ -263,7 +263,12 @@ def first_contact(
         gj0 = inner(nj, qf) - offset[jnp.maximum(lower, 0)]
         gj1, gj2 = inner(nj, wf), inner(nj, a)
         touches = (lower >= 0) & (jnp.abs(gj0) <= POSITION_TOL)
-        enters = moves_into(gj1, gj2)
+        # A ball at the apex of a graze leaves the face by no more than gj1^2 / (2 |gj2|)
+        # before falling into it: within POSITION_TOL that is entering it, not leaving
+        # (a flight whose apex touched a tread top 1e-12 m inside its edge, rising at
+        # 1e-11 m/s there, had its bevel contact dropped and flew through the tread).
+        grazes = (gj2 < -ACCEL_TOL) & (gj1 * gj1 <= -2.0 * gj2 * POSITION_TOL)
+        enters = moves_into(gj1, gj2) | grazes
         return jnp.isfinite(t) & jnp.any(touches & ~enters)
 
     # A blocked candidate is dropped and the next earliest taken: at a corner of a box at
