@@ -372,6 +372,7 @@ def _programs(scene, params, t_end, ts):
 
     import estim
 
+    from . import _native
     from ._simulate import _simulate, _simulate_ode
     from ._trajectory import check_keep
 
@@ -380,7 +381,7 @@ def _programs(scene, params, t_end, ts):
 
     def solve(prm, settings):
         if settings is None:
-            return _simulate(scene, prm, t_end, ts, 48, MAX_EVENTS, False, everything)
+            return _simulate(scene, prm, t_end, ts, 48, MAX_EVENTS, False, everything, _native.active())
         return _simulate_ode(scene, prm, t_end, ts, settings, MAX_EVENTS, False, everything)
 
     def final_x(theta, settings):

@@ -43,12 +43,13 @@ from ._config import FIT_COMPILE, jit, require_x64
 from ._initial import MU_DEFAULT, MU_RANGE, Initial, initial_guess
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, array_namespace, robust_loss, robust_weight
+from ._native import active_plan
 from ._ode import OdeSettings
 from ._ode import finish as ode_finish
 from ._ode import plan as ode_plan
 from ._params import DRAG_COEFFICIENT, Params
 from ._scene import Scene
-from ._solver import plan, segments_of
+from ._solver import segments_of
 from ._tracks import check_units
 from ._trajectory import IMPACT, list_events, sample
 
@@ -139,7 +140,7 @@ def _plan_at(scene: Scene, phi, problem: _Problem, max_segments: int):
     if scene.air is not None:
         pl = ode_plan(scene, params, t_end, _ode_settings())
         return pl, pl.n_steps
-    pl = plan(scene, params, t_end, max_segments)
+    pl = active_plan(scene, params, t_end, max_segments)
     return pl, pl.n_segments
 
 

@@ -73,7 +73,7 @@ def pack(parts: dict[str, Any], layout: Layout, batch_shape: tuple[int, ...] = (
     numbers, integers = [], []
     for (name, _, leaves) in layout.parts:
         for x, leaf in zip(jax.tree.leaves(parts[name]), leaves, strict=True):
-            row = jnp.reshape(x, batch_shape + (-1,))
+            row = jnp.reshape(x, batch_shape + (leaf.stop - leaf.start,))  # (not -1: a batch may be empty)
             if leaf.integer:
                 integers.append(row.astype(jnp.int32))
             else:

@@ -25,9 +25,10 @@ from jaxtyping import Array, Bool, Float
 
 from ._config import require_x64
 from ._contact import NORMAL, faces_for
+from ._native import active_plan
 from ._params import Params
 from ._scene import Scene
-from ._solver import plan, segments_of
+from ._solver import segments_of
 from ._trajectory import event_flights, list_events
 
 __all__ = ["EventSensitivity", "event_sensitivities"]
@@ -106,7 +107,7 @@ def _sensitivities(make, scene, theta, t_end, max_segments, max_events, grazing_
 
     def solve(th):
         sc, prm = unpack(th)
-        pl = plan(sc, prm, t_end, max_segments)
+        pl = active_plan(sc, prm, t_end, max_segments)
         segs = segments_of(sc, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
         g = sc.gravity
         events = list_events(segs, pl.decisions, prm.e, prm.mu_t, g, max_events)

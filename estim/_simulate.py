@@ -11,13 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from . import _ode
+from . import _native, _ode
 from ._config import CLOSED_FORM_COMPILE, jit, keep_loop, require_x64, top_level
 from ._ode import OdeSettings
 from ._params import PARAM_CHECKS, Params, check_t_end
 from ._record import layout_of, pack, unpack
 from ._scene import Scene
-from ._solver import TRAIN, plan, segments_of
+from ._solver import TRAIN, Plan, plan, segments_of
 from ._trajectory import (
     KEEP,
     ClosedFormSolution,
@@ -166,7 +166,8 @@ def simulate(
         traj = _simulate_ode(scene, params, t_end, ts, settings, max_events, throw and traced, keep)
         message = _INCOMPLETE_ODE
     else:
-        traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep)
+        traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep,
+                         _native.active())
         message = _INCOMPLETE
     # (Read from NumPy views of the rows: no eager JAX operation.)
     if throw and not traced:
@@ -191,7 +192,8 @@ _INCOMPLETE_ODE = (
 )
 
 
-def _flat_params(params: Params) -> Params:
+def flat_params(params: Params) -> Params:
+    """The parameters with every field broadcast to the batch and flattened to one axis of balls."""
     batch = params.batch_shape
 
     def flatten(x, event_shape):
@@ -209,7 +211,7 @@ def _flat_params(params: Params) -> Params:
 def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
     _ode.TRACE_COUNT += 1
     batch = params.batch_shape
-    flat = _flat_params(params)
+    flat = flat_params(params)
     if checks:
         code = jax.vmap(lambda prm: _input_code(scene, prm, t_end, ts))(flat)
         first = jnp.min(jnp.where(code > 0, code, len(_INPUT_CHECKS) + 1))
@@ -249,11 +251,50 @@ def _check_effects(scene: Scene, params: Params) -> None:
             )
 
 
-@jit(options=CLOSED_FORM_COMPILE, static_argnames=("max_segments", "max_events", "checks", "keep"))
-def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
-    batch = params.batch_shape
-    flat = _flat_params(params)
+def map_balls(fn, flat: Params, *per_ball):
+    """``jax.lax.map`` of ``fn(params, *items)`` over the balls of flat parameters (and
+    of the arrays ``per_ball``, one item per ball). The parameters enter the loop as one
+    row per ball, gathered by one kernel: where the caller computes them (slices and
+    stacks of a theta under jacfwd), that is one kernel instead of one per field."""
+    layout = layout_of({"params": flat}, 1)
+    rows, _ = pack({"params": flat}, layout, (flat.e.shape[0],))
+    return jax.lax.map(lambda items: fn(unpack(items[0], None, layout, "params"), *items[1:]), (rows,) + per_ball)
+
+
+def ball_parts(scene: Scene, prm: Params, t_end, ts, pl: Plan, max_events: int, keep: frozenset[str]) -> dict:
+    """One ball's Trajectory parts from its plan (``estim._trajectory.trajectory_parts``),
+    differentiably: the segments of ``pl`` with the derivatives of their replay, then the
+    samples, events, final state and dense solution that ``keep`` keeps. The JAX path runs
+    this for its primal; the native path for its tangent (``estim._native``)."""
     g = scene.gravity
+    segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
+    pos = vel = events = None  # only what keep keeps is computed
+    if "samples" in keep:
+        pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, g, ts)
+    if "events" in keep:
+        events = list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
+    last = jnp.maximum(pl.n_segments - 1, 0)
+    final = State(t_end, segments.p1[last], segments.v1_post[last])
+    solution = ClosedFormSolution(segments=segments, structure=pl.decisions, e=prm.e, mu_t=prm.mu_t, gravity=g)
+    complete = pl.complete & _stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
+    return trajectory_parts(pos, vel, events, final, complete, solution, keep)
+
+
+@jit(options=CLOSED_FORM_COMPILE, static_argnames=("max_segments", "max_events", "checks", "keep", "native"))
+def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep, native):
+    batch = params.batch_shape
+    g = scene.gravity
+
+    def unflat(x):
+        return x.reshape(batch + x.shape[1:])
+
+    if native:
+        # The primal on the native kernels, derivatives replayed in JAX (estim._native);
+        # the kernel runs the argument checks too, and fails with their message.
+        record, flags = _native.trajectory_rows(scene, params, t_end, ts, max_segments, max_events, keep, checks,
+                                                _INPUT_CHECKS + (_INCOMPLETE,))
+        layout = _native.trajectory_layout(ts.shape[0], max_segments, max_events, keep)
+        return Trajectory(ts=ts, record=unflat(record), flags=unflat(flags), gravity=g, layout=layout)
 
     # Ball by ball, in one loop that XLA:CPU compiles as a single kernel (estim._config):
     # each ball's plan, its samples, and only the events it lists (on the seed scene 9, 6
@@ -265,27 +306,11 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
     # writes each ball's result as the packed rows of a Trajectory, so that the program is
     # the loop and little else, and returns a few arrays.
     layouts = []  # the layout of a ball's rows, found while tracing its loop body
+    flat = flat_params(params)
 
-    # The parameters enter the loop as one row per ball, gathered by one kernel: where the
-    # caller computes them (slices and stacks of a theta under jacfwd), that is one kernel
-    # instead of one per field.
-    params_layout = layout_of({"params": flat}, 1)
-    params_rows, _ = pack({"params": flat}, params_layout, (flat.e.shape[0],))
-
-    def ball(row):
-        prm = unpack(row, None, params_layout, "params")
+    def ball(prm):
         pl = plan(scene, prm, t_end, max_segments)
-        segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
-        pos = vel = events = None  # only what keep keeps is computed
-        if "samples" in keep:
-            pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, g, ts)
-        if "events" in keep:
-            events = list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
-        last = jnp.maximum(pl.n_segments - 1, 0)
-        final = State(t_end, segments.p1[last], segments.v1_post[last])
-        solution = ClosedFormSolution(segments=segments, structure=pl.decisions, e=prm.e, mu_t=prm.mu_t, gravity=g)
-        complete = pl.complete & _stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
-        parts = trajectory_parts(pos, vel, events, final, complete, solution, keep)
+        parts = ball_parts(scene, prm, t_end, ts, pl, max_events, keep)
         layouts.append(layout_of(parts, 0))
         rows = pack(parts, layouts[-1])
         if not checks:
@@ -293,9 +318,9 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
         # The ball's first failing input check (1-based), else len(_INPUT_CHECKS) + 1 if it
         # is left incomplete, else 0.
         code = _input_code(scene, prm, t_end, ts)
-        return rows + (jnp.where(code > 0, code, jnp.where(complete, 0, len(_INPUT_CHECKS) + 1)),)
+        return rows + (jnp.where(code > 0, code, jnp.where(parts["complete"], 0, len(_INPUT_CHECKS) + 1)),)
 
-    record, flags, *code = jax.lax.map(ball, params_rows)
+    record, flags, *code = map_balls(ball, flat)
     if keep != frozenset(KEEP):  # (check_keep made keep a frozenset)
         # For one ball XLA replaces the loop by its body and drops whatever the caller
         # leaves unused: with every part kept, that is what lets a function of the final
@@ -303,9 +328,6 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep):
         # loop: one kernel, where the body is a few dozen (jacfwd of the golf ball's final
         # x, 6 kernels instead of 37; docs/pages/speed.md).
         record = keep_loop(record)
-
-    def unflat(x):
-        return x.reshape(batch + x.shape[1:])
 
     traj = Trajectory(ts=ts, record=unflat(record), flags=unflat(flags), gravity=g, layout=layouts[-1])
     if checks:

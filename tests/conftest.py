@@ -11,6 +11,7 @@ Importing estim switches JAX's x64 mode on; every helper computes in float64.
 
 from __future__ import annotations
 
+import contextlib
 import pathlib
 import types
 
@@ -43,6 +44,21 @@ SEED_VX = 1.15
 SEED_X0 = -0.20
 SEED_T_END = 2.3
 G = 9.81
+
+
+@contextlib.contextmanager
+def jax_path():
+    """Run estim's closed-form path on the JAX solver (the path of backends without its
+    native kernels, estim._native) instead of the kernels, within the block. Programs
+    traced (jitted) before keep the path they were traced with."""
+    from estim import _native
+
+    was = _native.ENABLED
+    _native.ENABLED = False
+    try:
+        yield
+    finally:
+        _native.ENABLED = was
 
 
 def seed_release(scene: estim.Scene, ball: str) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -13,12 +14,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import STAIRS_XML, seed_params
+from conftest import STAIRS_XML, jax_path, seed_params
 
 import estim
 from estim import _config
 from estim._contact import inner
-from estim._simulate import _flat_params
+from estim._simulate import flat_params
 from estim._solver import plan, replay
 
 _PROBE = (
@@ -83,7 +84,7 @@ def test_event_loops_compile_to_one_kernel():
     compiled program lies inside an outlined ``*_computation`` (SmallWhileLoopHoistingPass)."""
     scene = estim.load_scene(STAIRS_XML)
     golf = estim.Params.for_ball(scene, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0.0, 0.0))
-    three = _flat_params(seed_params(scene))  # the seed's three balls
+    three = flat_params(seed_params(scene))  # the seed's three balls
 
     plan_hlo = jax.jit(lambda p: jax.lax.map(lambda q: plan(scene, q, 2.3, 48), p)).lower(three).compile().as_text()
     decisions = plan(scene, golf, 2.3, 48).decisions
@@ -93,22 +94,51 @@ def test_event_loops_compile_to_one_kernel():
 
     grad_hlo = jax.jit(jax.jacfwd(final_x)).lower(jnp.float64(0.7)).compile().as_text()
 
-    # simulate itself: the three seed balls, one at a time in a loop (estim._simulate), and
-    # the jacfwd of the golf ball's final x through it.
-    sim_hlo = jax.jit(lambda p: estim.simulate(scene, p, 2.3)).lower(seed_params(scene)).compile().as_text()
-
-    def sim_final_x(e):
-        return estim.simulate(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3).final.position[0]
-
-    sim_grad_hlo = jax.jit(jax.jacfwd(sim_final_x)).lower(jnp.float64(0.7)).compile().as_text()
+    # simulate itself on the JAX path (estim's path without its native kernels): the three
+    # seed balls, one at a time in a loop (estim._simulate), and the jacfwd of the golf
+    # ball's final x through it.
+    with jax_path():
+        sim_hlo = _simulate_hlo(scene, seed_params(scene))
+        sim_grad_hlo = _gradient_hlo(scene, golf)
     for hlo in (plan_hlo, grad_hlo, sim_hlo, sim_grad_hlo):
         owners = _loop_owners(hlo)
         assert owners, "no while loop found"
         assert all(name.endswith("_computation") for name in owners), owners
     # The forward call is one such kernel: the loop over balls, with everything inside.
-    entry = sim_hlo[sim_hlo.index("\nENTRY"):]
-    entry = entry[: entry.index("\n}\n")]
+    entry = _entry(sim_hlo)
     assert len(re.findall(r"= .* call\(", entry)) == 1, "simulate is not one loop kernel"
+
+
+def _simulate_hlo(scene, params):
+    return jax.jit(lambda p: estim.simulate(scene, p, 2.3)).lower(params).compile().as_text()
+
+
+def _gradient_hlo(scene, golf):
+    def final_x(e):
+        return estim.simulate(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3).final.position[0]
+
+    return jax.jit(jax.jacfwd(final_x)).lower(jnp.float64(0.7)).compile().as_text()
+
+
+def _entry(hlo: str) -> str:
+    entry = hlo[hlo.index("\nENTRY"):]
+    return entry[: entry.index("\n}\n")]
+
+
+@pytest.mark.skipif(not _config.SMALL_LOOPS_AS_KERNELS, reason="XLA's backend started before estim")
+def test_native_forward_is_one_call_and_its_derivative_one_loop_kernel():
+    """On the native kernels the forward program is the kernel's call and nothing else
+    that computes (no loop, no check kernel); its derivative replays the structure in one
+    loop kernel (estim._native)."""
+    scene = estim.load_scene(STAIRS_XML)
+    golf = estim.Params.for_ball(scene, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0.0, 0.0))
+    entry = _entry(_simulate_hlo(scene, seed_params(scene)))
+    assert re.findall(r"custom_call_target=\"(\w+)\"", entry) == ["estim_trajectory"]
+    assert not _loop_owners(entry) and [k for k in _entry_kernels(entry + "\n}\n") if k != "copy"] == ["custom-call"]
+    grad_hlo = _gradient_hlo(scene, golf)
+    owners = _loop_owners(grad_hlo)
+    assert owners and all(name.endswith("_computation") for name in owners), owners
+    assert "estim_plan" in grad_hlo
 
 
 _DISPATCH_PROBE = (
@@ -155,7 +185,8 @@ def _entry_kernels(hlo: str) -> list[str]:
 
 
 @pytest.mark.skipif(not _config.SMALL_LOOPS_AS_KERNELS, reason="XLA's backend started before estim")
-def test_one_ball_with_keep_stays_one_loop_kernel():
+@pytest.mark.parametrize("native", [True, False])
+def test_one_ball_with_keep_stays_one_loop_kernel(native):
     """For one ball XLA would inline the loop over balls and run its body kernel by kernel
     (dozens, which XLA:CPU spreads over its threads); with ``keep`` given the loop stays
     one kernel, and the program at most the 8 kernels XLA:CPU runs on the calling thread.
@@ -170,9 +201,16 @@ def test_one_ball_with_keep_stays_one_loop_kernel():
 
     theta = jnp.array([0.7, 0.98, 1.15])
     kernels = {}
+    with contextlib.nullcontext() if native else jax_path():
+        kernels = _gradient_kernels(final_x, theta)
+    assert kernels[()].count("call") == 1 and len(kernels[()]) <= 8, kernels[()]
+    assert len(kernels[None]) > 8  # inlined: the body's kernels
+
+
+def _gradient_kernels(final_x, theta):
+    kernels = {}
     for keep in ((), None):
         grad = jax.jit(jax.jacfwd(lambda th, keep=keep: final_x(th, keep)))
         np.testing.assert_allclose(grad(theta), [0.19213914, 6.81524982, 2.17816532], atol=5e-9)
         kernels[keep] = _entry_kernels(grad.lower(theta).compile().as_text())
-    assert kernels[()].count("call") == 1 and len(kernels[()]) <= 8, kernels[()]
-    assert len(kernels[None]) > 8  # inlined: the body's kernels
+    return kernels

@@ -22,6 +22,7 @@ single ball): its tolerances are traced, its max_steps and shapes are those of e
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 from typing import NamedTuple
@@ -37,6 +38,7 @@ from conftest import (
     G,
     grad_final_x,
     jac_outputs,
+    jax_path,
     l1_depth,
     padded_params,
     padded_ts,
@@ -1247,10 +1249,11 @@ DEGENERATE = {
 }
 
 
-def _degenerate(stairs, case, **kwargs):
+def _degenerate(stairs, case, native=True, **kwargs):
     args, t_end = DEGENERATE[case]
     ts = np.linspace(0.0, t_end, 601)
-    return estim.simulate(stairs, estim.Params(*args), t_end, ts=ts, **kwargs), args[2]
+    with contextlib.nullcontext() if native else jax_path():
+        return estim.simulate(stairs, estim.Params(*args), t_end, ts=ts, **kwargs), args[2]
 
 
 def _outside(stairs, traj, r) -> bool:
@@ -1259,28 +1262,38 @@ def _outside(stairs, traj, r) -> bool:
     return bool(np.all(depth >= r - 1e-9) and np.all(q[..., 2] >= r - 1e-9))
 
 
+@pytest.mark.parametrize("native", [True, False], ids=["kernel", "jax"])
 @pytest.mark.parametrize("case", DEGENERATE)
-def test_degenerate_contacts_never_pass_through_silently(stairs, case):
+def test_degenerate_contacts_never_pass_through_silently(stairs, case, native):
     """Either the ball stays outside every solid at every sample, or it is reported
-    incomplete and simulate raises, saying why."""
-    traj, r = _degenerate(stairs, case, throw=False)
+    incomplete and simulate raises, saying why (on the native kernel and on the JAX path)."""
+    traj, r = _degenerate(stairs, case, native, throw=False)
     if bool(np.asarray(traj.complete)):
         assert _outside(stairs, traj, r)
     else:
         with pytest.raises(RuntimeError, match="entered a solid"):
-            _degenerate(stairs, case)
+            _degenerate(stairs, case, native)
 
 
-RESOLVED = ("apex_grazes_step1_top_1e-12_inside_its_edge",)
+# Resolved on each path. The r = 0.5 ball on a bevel is followed bounce by bounce, and each
+# bounce carries the rounding of the last: the kernel (whose log, expm1 and pow are the C
+# library's) and the JAX path part at the 9th bounce, by 4e-17 s. On the kernel the ball
+# then settles on the bevel, slides down it and comes to rest on the ground; on the JAX
+# path it meets step4's edge and is reported incomplete. Which one happens is decided by
+# rounding, not by a treatment of the degenerate contact (docs/pages/hard-cases.md).
+RESOLVED = {
+    True: ("apex_grazes_step1_top_1e-12_inside_its_edge", "series_on_step5_y_edge_bevel_r_0.5"),
+    False: ("apex_grazes_step1_top_1e-12_inside_its_edge",),
+}
 
 
-@pytest.mark.parametrize("case", [
-    c if c in RESOLVED else pytest.param(c, marks=pytest.mark.xfail(
-        strict=True, reason="open: the closed forms miss this degenerate contact (hard-cases.md)"))
-    for c in DEGENERATE
-])
-def test_degenerate_contacts_are_resolved(stairs, case):
-    traj, r = _degenerate(stairs, case, throw=False)
+@pytest.mark.parametrize("native", [True, False], ids=["kernel", "jax"])
+@pytest.mark.parametrize("case", DEGENERATE)
+def test_degenerate_contacts_are_resolved(stairs, case, native, request):
+    if case not in RESOLVED[native]:
+        request.applymarker(pytest.mark.xfail(
+            strict=True, reason="open: the closed forms miss this degenerate contact (hard-cases.md)"))
+    traj, r = _degenerate(stairs, case, native, throw=False)
     assert bool(np.asarray(traj.complete)) and _outside(stairs, traj, r)
 
 

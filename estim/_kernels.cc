@@ -1,0 +1,1272 @@
+// The closed-form solver of estim as native CPU kernels, called from JAX through its
+// foreign function interface (XLA FFI; estim._native registers and calls them).
+//
+// What runs here is the *primal* of the gravity-only path: the plan of every ball (the
+// discrete structure of its solution and its segments), its samples, its event list and
+// its packed Trajectory rows. Derivatives never come here: JAX computes them by replaying
+// the structure this kernel found with the differentiable closed forms of estim._solver
+// (estim._native, the custom_jvp). Every function below is a line-by-line port of the
+// JAX function of the same name, with the same formulas and the same tolerances; the
+// docstrings there carry the maths (estim._contact, estim._train, estim._solver,
+// estim._trajectory) and tests/test_native.py checks that both give the same structure
+// and the same numbers, to rounding, ball by ball.
+//
+// Why native: a JAX program of this event loop is a single XLA kernel of some 26,000 HLO
+// lines that takes XLA 2.5 s to compile, and a call of it costs its buffers' allocations.
+// Compiled here, once, at install, a call is the loop alone (docs/pages/speed.md).
+//
+// Semantics kept from JAX: jnp.minimum / jnp.maximum / jnp.min propagate NaN (jmin, jmax
+// below), comparisons with NaN are false, and expressions are evaluated in the order the
+// JAX code writes them (XLA does not reassociate floating point).
+
+#include <Python.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <string>
+#include <string_view>
+#include <thread>
+#include <vector>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+// estim._contact
+constexpr double POSITION_TOL = 1e-12;
+constexpr double SPEED_TOL = 1e-12;
+constexpr double ACCEL_TOL = 1e-12;
+constexpr double ON_FACE_TOL = 1e-9;
+constexpr double REST_SPEED = 1e-9;
+// estim._train
+constexpr double GAP = 1e-6;
+constexpr double MAX_COUNT = 4503599627370496.0;  // 2^52
+// estim._trajectory
+constexpr double LISTED_FLIGHT = 1e-6;
+// estim._simulate._inside: a ball starts inside a solid deeper than this
+constexpr double INSIDE_TOL = 1e-9;
+
+// estim._solver: segment kinds and why a segment ends
+enum Kind : int32_t { FLIGHT = 0, TRAIN = 1, SLIDE = 2, UNUSED = 3 };
+enum Reason : int32_t { END = 0, CONTACT = 1, EXIT = 2, BOUNCES = 3, SETTLE = 4 };
+// estim._trajectory: event kinds
+enum EventKind : int32_t { IMPACT = 0, REST = 1 };
+
+// Columns of a face-table row (estim._contact.Faces.row).
+constexpr int ROW = 14, NORMAL = 0, OFFSET = 3, CENTRE = 4, HALF = 7, DIRECTION = 10, SOLID = 13;
+constexpr int LOWER = 6;  // bordering faces of lower rank per face
+
+inline double jmin(double a, double b) { return (a != a || b != b) ? kNaN : (a < b ? a : b); }
+inline double jmax(double a, double b) { return (a != a || b != b) ? kNaN : (a > b ? a : b); }
+inline double clip_index(double k, double hi) { return k < 0 ? 0 : (k > hi ? hi : k); }
+
+struct V3 {
+  double x[3];
+  double operator[](int i) const { return x[i]; }
+  double& operator[](int i) { return x[i]; }
+};
+inline V3 v3(double a, double b, double c) { return V3{{a, b, c}}; }
+inline V3 load3(const double* p) { return V3{{p[0], p[1], p[2]}}; }
+inline V3 operator+(V3 a, V3 b) { return v3(a[0] + b[0], a[1] + b[1], a[2] + b[2]); }
+inline V3 operator-(V3 a, V3 b) { return v3(a[0] - b[0], a[1] - b[1], a[2] - b[2]); }
+inline V3 operator*(double s, V3 a) { return v3(s * a[0], s * a[1], s * a[2]); }
+inline V3 operator*(V3 a, double s) { return v3(a[0] * s, a[1] * s, a[2] * s); }
+// estim._contact.inner: x0 y0 + x1 y1 + x2 y2, left to right
+inline double inner(V3 a, V3 b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+inline bool all_finite(V3 a) { return std::isfinite(a[0]) && std::isfinite(a[1]) && std::isfinite(a[2]); }
+const V3 kZero = v3(0.0, 0.0, 0.0);
+const V3 kUp = v3(0.0, 0.0, 1.0);
+
+// ---------------------------------------------------------------------------------------
+// The scene for one ball radius (estim._contact.Faces) and the solids (estim._simulate).
+
+struct Scene {
+  int n_faces, n_solids, n_boxes, n_planes;
+  const double* row;       // (faces, 14)
+  const double* growth;    // (faces,)
+  const int32_t* rank;     // (faces,)
+  const int32_t* lower;    // (faces, 6)
+  const double* box_lo;    // (solids, 3): solids as boxes, before growing by r
+  const double* box_hi;
+  const double* centre;    // (boxes, 3): the boxes themselves
+  const double* half;
+  const double* p_normal;  // (planes, 3)
+  const double* p_offset;  // (planes,)
+  double gravity;
+};
+
+struct Faces {
+  const Scene* s = nullptr;
+  double radius = 0.0;
+  std::vector<double> offset;  // plane offset for the ball's centre, per face
+  std::vector<int32_t> order;  // rank * faces + index: ties go to lower rank, then index
+  // The faces of each solid, [first[b], first[b + 1]) (estim._scene lists them solid by
+  // solid); empty when a scene lists them otherwise, and then no broad phase is used.
+  std::vector<int> first;
+
+  // The table for a ball of radius r (reusing the buffers of the last ball).
+  void reset(const Scene* scene, double r) {
+    const int F = scene->n_faces;
+    if (scene->row != (s ? s->row : nullptr) || static_cast<int>(order.size()) != F) {
+      order.resize(F);
+      for (int f = 0; f < F; ++f) order[f] = scene->rank[f] * F + f;
+      first.assign(scene->n_solids + 1, F);
+      bool grouped = true;
+      for (int f = 0, b = 0; f < F && grouped; ++f) {  // b: the next solid to start
+        const double solid = scene->row[f * ROW + SOLID];
+        grouped = solid >= b - 1 && solid < scene->n_solids;
+        for (; grouped && b <= solid; ++b) first[b] = f;
+      }
+      if (!grouped) first.clear();
+    }
+    s = scene;
+    radius = r;
+    offset.resize(F);
+    for (int f = 0; f < F; ++f) offset[f] = scene->row[f * ROW + OFFSET] + radius * scene->growth[f];
+  }
+  const double* row(int f) const { return s->row + f * ROW; }
+  V3 normal(int f) const { return load3(row(f) + NORMAL); }
+  double lo(int b, int i) const { return s->box_lo[b * 3 + i] - radius; }
+  double hi(int b, int i) const { return s->box_hi[b * 3 + i] + radius; }
+};
+
+// ---------------------------------------------------------------------------------------
+// estim._contact
+
+inline bool moves_into(double g1, double g2) {
+  return (g1 < -SPEED_TOL) || ((std::fabs(g1) <= SPEED_TOL) && (g2 < -ACCEL_TOL));
+}
+
+inline __attribute__((always_inline)) double entering_time(double g0, double g1, double g2) {
+  const bool touching = std::fabs(g0) <= POSITION_TOL;
+  const bool pushed = moves_into(g1, g2);
+  const bool along = touching && (std::fabs(g1) <= SPEED_TOL) && (std::fabs(g2) <= ACCEL_TOL);
+  const double disc = g1 * g1 - 2.0 * g2 * g0;
+  const bool has_root = disc > 0;
+  const double s = std::sqrt(has_root ? disc : 1.0);
+  const bool neg = g1 < 0;
+  const double den_a = neg ? s - g1 : 1.0;
+  const double den_b = (neg || g2 == 0) ? -1.0 : g2;
+  const double tau = neg ? 2.0 * g0 / den_a : (-g1 - s) / den_b;
+  const bool future = has_root && (tau > 0) && (neg || g2 < 0);
+  if (touching && pushed) return 0.0;
+  return (future && !along) ? tau : kInf;
+}
+
+// ballistic: p + v tau + a tau^2 / 2 (as ((p + v tau) + ((0.5 a) tau) tau)), v + a tau
+inline V3 ballistic_p(V3 p, V3 v, V3 a, double tau) {
+  V3 out;
+  for (int i = 0; i < 3; ++i) out[i] = p[i] + v[i] * tau + 0.5 * a[i] * tau * tau;
+  return out;
+}
+inline V3 ballistic_v(V3 v, V3 a, double tau) { return v + a * tau; }
+
+bool on_face(V3 q, const double* centre, const double* half, double radius) {
+  double excess = 0.0;
+  for (int i = 0; i < 3; ++i) excess = excess + jmax(std::fabs(q[i] - centre[i]) - half[i], 0.0);
+  return excess <= radius + ON_FACE_TOL;
+}
+
+// A broad phase for first_contact, exact: a face's contact point lies within
+// ON_FACE_TOL of its solid's box grown by r along every axis, so the path cannot touch
+// a solid's faces before it enters that box grown by BROAD_MARGIN more (a margin far
+// above ON_FACE_TOL and the rounding of a contact time). For each axis, the earliest time
+// the coordinate reaches the box's interval is a lower bound; the latest over the axes is
+// the solid's bound.
+constexpr double BROAD_MARGIN = 1e-6;
+
+double reach_bound(const Faces& fc, int b, V3 p, V3 v, V3 a) {
+  double bound = 0.0;
+  for (int i = 0; i < 3 && bound < kInf; ++i) {
+    const double lo = fc.lo(b, i) - BROAD_MARGIN, hi = fc.hi(b, i) + BROAD_MARGIN;
+    double t = 0.0;
+    if (p[i] < lo) t = entering_time(lo - p[i], -v[i], -a[i]);
+    else if (p[i] > hi) t = entering_time(p[i] - hi, v[i], a[i]);
+    else if (!(p[i] >= lo && p[i] <= hi)) t = kInf;  // NaN: nothing is entered
+    bound = t > bound ? t : bound;
+  }
+  return bound;
+}
+
+struct Candidate {
+  double tau;
+  int32_t order;
+  int face;
+};
+
+// Earliest face the ball enters, and when; (inf, -1) if none (estim._contact.first_contact).
+// The faces of a solid are tested only while the solid's reach bound could still beat the
+// earliest contact found so far (to within the 1e-12 s that ties faces): the result is
+// that of testing every face, the blocked faces and the ties included.
+struct ContactSearch {
+  std::vector<Candidate> found, alive;
+  std::vector<std::pair<double, int>> solids;
+
+  std::pair<double, int> operator()(const Faces& fc, V3 p, V3 v, V3 a, int exclude) {
+    const int F = fc.s->n_faces;
+    found.clear();
+    solids.clear();
+    const bool broad = !fc.first.empty();
+    const int groups = broad ? fc.s->n_solids : 1;
+    for (int b = 0; b < groups; ++b) solids.emplace_back(broad ? reach_bound(fc, b, p, v, a) : 0.0, b);
+    std::sort(solids.begin(), solids.end());
+    std::pair<double, int> best{kInf, -1};
+    for (size_t k = 0; k < solids.size() && solids[k].first < kInf; ++k) {
+      const int b = solids[k].second;
+      const int lo = broad ? fc.first[b] : 0, hi = broad ? fc.first[b + 1] : F;
+      for (int f = lo; f < hi; ++f) {
+        const double* r = fc.row(f);
+        const V3 n = load3(r + NORMAL);
+        const double g0 = inner(n, p) - fc.offset[f], g1 = inner(n, v), g2 = inner(n, a);
+        // (Away from the plane and not approaching it: entering_time is inf.)
+        if ((g0 > POSITION_TOL && g1 >= 0 && g2 >= 0) || f == exclude) continue;
+        const double t = entering_time(g0, g1, g2);
+        if (!std::isfinite(t)) continue;
+        double excess = 0.0;
+        for (int i = 0; i < 3; ++i)
+          excess = excess + jmax(std::fabs(p[i] + v[i] * t + 0.5 * a[i] * t * t - r[CENTRE + i]) - r[HALF + i], 0.0);
+        if (excess <= fc.radius + ON_FACE_TOL) found.push_back(Candidate{t, fc.order[f], f});
+      }
+      best = resolve(fc, p, v, a);
+      if (k + 1 < solids.size() && solids[k + 1].first > best.first + 1e-12) break;
+    }
+    return best;
+  }
+
+  // The earliest candidate, ties to the lowest order, dropping up to three that are
+  // blocked (the ball touches a lower-rank face bordering it without entering it).
+  std::pair<double, int> resolve(const Faces& fc, V3 p, V3 v, V3 a) {
+    alive = found;
+    for (int rounds = 0;; ++rounds) {
+      double t_min = kInf;
+      for (const Candidate& c : alive) t_min = jmin(t_min, c.tau);
+      if (!std::isfinite(t_min)) return {t_min, -1};
+      size_t pick = 0;
+      int32_t best = std::numeric_limits<int32_t>::max();
+      for (size_t j = 0; j < alive.size(); ++j)
+        if (alive[j].tau <= t_min + 1e-12 && alive[j].order < best) best = alive[j].order, pick = j;
+      const int face = alive[pick].face;
+      if (rounds == 3 || !blocked(fc, p, v, a, face, t_min)) return {t_min, face};
+      alive.erase(alive.begin() + pick);
+    }
+  }
+
+  static bool blocked(const Faces& fc, V3 p, V3 v, V3 a, int face, double t) {
+    const V3 qf = ballistic_p(p, v, a, t), wf = ballistic_v(v, a, t);
+    for (int k = 0; k < LOWER; ++k) {
+      const int j = fc.s->lower[face * LOWER + k];
+      if (j < 0) continue;
+      const V3 nj = fc.normal(j);
+      const double gj0 = inner(nj, qf) - fc.offset[j], gj1 = inner(nj, wf), gj2 = inner(nj, a);
+      const bool touches = std::fabs(gj0) <= POSITION_TOL;
+      // A ball at the apex of a graze leaves the face by no more than gj1^2 / (2 |gj2|)
+      // before falling into it: within POSITION_TOL that is entering it.
+      const bool grazes = (gj2 < -ACCEL_TOL) && (gj1 * gj1 <= -2.0 * gj2 * POSITION_TOL);
+      const bool enters = moves_into(gj1, gj2) || grazes;
+      if (touches && !enters) return true;
+    }
+    return false;
+  }
+};
+
+double face_entering_time(const Faces& fc, int face, V3 p, V3 v, V3 a) {
+  const V3 n = fc.normal(face);
+  return entering_time(inner(n, p) - fc.offset[face], inner(n, v), inner(n, a));
+}
+
+// eq. (3) of estim._contact
+V3 reset(V3 v, V3 n, double e, double mu_t) {
+  const double vn = inner(v, n);
+  return mu_t * (v - vn * n) - e * vn * n;
+}
+
+double slide_exit_time(const Faces& fc, int face, V3 p, V3 v, V3 a) {
+  const double* r = fc.row(face);
+  double out = kInf;
+  for (int i = 0; i < 3; ++i) {
+    const double m = r[DIRECTION + i], c = r[CENTRE + i], h = r[HALF + i];
+    const double q = p[i] - c;
+    const bool finite = std::isfinite(h);
+    const double sign_lo = m < 0 ? -1.0 : 1.0, bound_lo = m < 0 ? -h : h;
+    const double sign_hi = m > 0 ? 1.0 : -1.0, bound_hi = m > 0 ? -h : h;
+    const double t_lo = entering_time(sign_lo * q + (finite ? bound_lo : 1.0), sign_lo * v[i], sign_lo * a[i]);
+    const double t_hi = entering_time(sign_hi * q + (finite ? bound_hi : 1.0), sign_hi * v[i], sign_hi * a[i]);
+    out = jmin(out, (finite && m <= 0) ? t_lo : kInf);
+    out = jmin(out, (finite && m >= 0) ? t_hi : kInf);
+  }
+  return out;
+}
+
+double train_reach(const Faces& fc, int face, V3 p, V3 u, double height) {
+  const double* r = fc.row(face);
+  const double solid = r[SOLID];
+  const double zeta = p[2];
+  const double speed = std::sqrt(u[0] * u[0] + u[1] * u[1]);
+  const bool moving = speed > 0;
+  double d[2], dd[2];
+  bool dz[2];
+  for (int i = 0; i < 2; ++i) {
+    d[i] = moving ? u[i] / (moving ? speed : 1.0) : 0.0;
+    dz[i] = std::fabs(d[i]) > 1e-12;
+    dd[i] = dz[i] ? d[i] : 1.0;
+  }
+  double obstacle = kInf;
+  for (int b = 0; b < fc.s->n_solids; ++b) {
+    const bool overlap = (fc.lo(b, 2) < zeta + height - POSITION_TOL) && (fc.hi(b, 2) > zeta + POSITION_TOL);
+    double enter = -kInf, leave = kInf;
+    for (int i = 0; i < 2; ++i) {
+      const double lo = fc.lo(b, i), hi = fc.hi(b, i);
+      const double t1 = (lo - p[i]) / dd[i], t2 = (hi - p[i]) / dd[i];
+      const bool inside = (p[i] > lo + POSITION_TOL) && (p[i] < hi - POSITION_TOL);
+      const double s_in = dz[i] ? jmin(t1, t2) : (inside ? -kInf : kInf);
+      const double s_out = dz[i] ? jmax(t1, t2) : (inside ? kInf : -kInf);
+      enter = i == 0 ? s_in : jmax(enter, s_in);
+      leave = i == 0 ? s_out : jmin(leave, s_out);
+    }
+    enter = jmax(enter, 0.0);
+    const bool hit = overlap && (enter < leave - POSITION_TOL) && (static_cast<double>(b) != solid);
+    obstacle = jmin(obstacle, hit ? enter : kInf);
+  }
+  double exit_face = kInf;
+  if (moving) {
+    for (int i = 0; i < 2; ++i) {
+      const double c = r[CENTRE + i], h = r[HALF + i];
+      const double edge = d[i] > 0 ? c + h : c - h;
+      exit_face = jmin(exit_face, (dz[i] && std::isfinite(h)) ? (edge - p[i]) / dd[i] : kInf);
+    }
+  }
+  const double reach = jmin(obstacle, exit_face);
+  return obstacle <= POSITION_TOL ? -1.0 : jmax(reach, 0.0);
+}
+
+bool series_clear(const Faces& fc, int face, V3 p, V3 v, double duration, double gravity) {
+  const double d = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * duration + 0.5 * gravity * (duration * duration);
+  const double solid = fc.row(face)[SOLID];
+  for (int b = 0; b < fc.s->n_solids; ++b) {
+    bool meets = static_cast<double>(b) != solid;
+    for (int i = 0; i < 3 && meets; ++i) meets = (p[i] - d < fc.hi(b, i)) && (p[i] + d > fc.lo(b, i));
+    if (meets) return false;
+  }
+  return true;
+}
+
+// A ratio q of geometric sums, with log(q) and expm1(log(q)) computed once (a ball's
+// closed forms sum the same few ratios again and again).
+struct Ratio {
+  double q, lq, em1;
+  explicit Ratio(double q_ = 0.5) : q(q_), lq(std::log((q_ == 1.0 || q_ == 0.0) ? 0.5 : q_)), em1(std::expm1(lq)) {}
+};
+
+double geometric_sum(const Ratio& r, double n) {
+  const double q = r.q;
+  const bool one = q == 1.0, zero = q == 0.0, finite = std::isfinite(n);
+  if (one) return finite ? n + 0.5 * n * (n - 1.0) * (q - 1.0) : kInf;
+  if (zero) return n >= 1 ? 1.0 + q * jmin(n - 1.0, 1.0) : 0.0;
+  if (!finite) return -1.0 / r.em1;
+  return std::expm1(jmin(n * r.lq, 0.0)) / r.em1;
+}
+
+double geometric_count(const Ratio& r, double y) {
+  const double q = r.q;
+  // (r.lq is log(q) for 0 < q < 1 and log(0.5) otherwise, as in estim._contact)
+  const double arg = 1.0 - y * (1.0 - q);
+  const double n_gen = arg > 0 ? std::floor(std::log(arg) / r.lq) : kInf;
+  double n = q >= 1.0 ? std::floor(y) : (q <= 0.0 ? (y >= 1 ? kInf : 0.0) : n_gen);
+  if (y < 0) n = -1.0;
+  const bool finite = std::isfinite(n) && n >= 0;
+  const double nf = finite ? n : 0.0;
+  const bool up = finite && geometric_sum(r, nf + 1) <= y;
+  const bool down = finite && nf > 0 && geometric_sum(r, nf) > y;
+  if (up) n = nf + 1;
+  if (down) n = nf - 1;
+  return y < 0 ? -1.0 : jmax(n, 0.0);
+}
+
+double safe_power(double x, double n) {
+  const bool finite = std::isfinite(n), whole = finite && n >= 1;
+  if (!whole) return finite ? 1.0 : (x == 1.0 ? 1.0 : 0.0);
+  const double rest = x > 0 ? std::pow(x, n - 1.0) : (n == 1.0 ? 1.0 : 0.0);
+  return x * rest;
+}
+
+// ---------------------------------------------------------------------------------------
+// estim._train
+
+struct Series {
+  V3 normal;
+  double a_n;
+  V3 a_t;
+  double w;
+  V3 u;
+  double period;
+};
+
+Series series(V3 v, V3 normal, V3 a) {
+  const double a_n = inner(a, normal), w = inner(v, normal);
+  return Series{normal, a_n, a - a_n * normal, w, v - w * normal, 2.0 * w / -a_n};
+}
+
+// A ball's coefficients e and mu_t with the ratios its bounce series sum: e, e mu_t and
+// e^2, and for the divided differences K and L e2 mu_t and e2^2, e2 being e moved by GAP
+// off mu_t where they nearly agree (estim._train._differences).
+struct Rates {
+  double e, mu, e2, gap;
+  Ratio by_e, by_emu, by_ee, by_e2mu, by_e2e2;
+
+  Rates() = default;
+  Rates(double e_, double mu_) : e(e_), mu(mu_) {
+    const bool close = std::fabs(mu - e) < GAP;
+    e2 = close ? (e >= GAP ? e - GAP : e + GAP) : e;
+    gap = mu - e2;
+    by_e = Ratio(e);
+    by_emu = Ratio(e * mu);
+    by_ee = Ratio(e * e);
+    by_e2mu = Ratio(e2 * mu);
+    by_e2e2 = Ratio(e2 * e2);
+  }
+};
+
+struct Start {
+  double t;
+  V3 x, v;
+};
+
+// Time offset, displacement and velocity at the start of flight j (after bounce j).
+Start flight_start(const Series& s, double j, const Rates& c) {
+  const double mu = c.mu;
+  const double t = s.period * geometric_sum(c.by_e, j);
+  const double jj = std::isfinite(t) ? j : 0.0;
+  const double k = (safe_power(mu, j) - safe_power(c.e2, j)) / c.gap;
+  const double l = (geometric_sum(c.by_e2mu, jj) - geometric_sum(c.by_e2e2, jj)) / c.gap;
+  const double g_emu = geometric_sum(c.by_emu, jj), g_ee = geometric_sum(c.by_ee, jj);
+  const double period2 = s.period * s.period;
+  const double p_mu = safe_power(mu, j), p_e = safe_power(c.e, j);
+  Start out;
+  out.t = t;
+  for (int i = 0; i < 3; ++i) {
+    out.x[i] = s.period * (s.u[i] * g_emu + s.a_t[i] * s.period * mu * l) + 0.5 * s.a_t[i] * period2 * g_ee;
+    const double u_j = p_mu * s.u[i] + s.a_t[i] * s.period * mu * k;
+    out.v[i] = u_j + (s.w * p_e) * s.normal[i];
+  }
+  return out;
+}
+
+// Displacement and velocity tau after the series began (at most n_max bounces).
+void state_at(const Series& s, double tau, const Rates& c, double n_max, V3* dx, V3* v) {
+  double j = geometric_count(c.by_e, tau / s.period);
+  j = jmin(jmin(j, n_max), MAX_COUNT);
+  const Start st = flight_start(s, j, c);
+  const double tau_j = tau - st.t;
+  const V3 a_full = s.a_t + s.a_n * s.normal;
+  for (int i = 0; i < 3; ++i) {
+    (*dx)[i] = st.x[i] + st.v[i] * tau_j + 0.5 * a_full[i] * (tau_j * tau_j);
+    (*v)[i] = st.v[i] + a_full[i] * tau_j;
+  }
+}
+
+Start series_end(const Series& s, double n, const Rates& c) {
+  Start st = flight_start(s, n, c);
+  if (!std::isfinite(n)) st.v = st.v - inner(st.v, s.normal) * s.normal;
+  return st;
+}
+
+// ---------------------------------------------------------------------------------------
+// estim._solver
+
+struct Decision {
+  int32_t kind, support;
+  double n;
+  int32_t reason, face;
+};
+
+struct Segment {
+  double t0;
+  V3 p0, v0, acc;
+  double t1;
+  V3 p1, v1, v1_post, normal;
+};
+constexpr int SEGMENT_NUMBERS = 23;
+
+void write_segment(const Segment& s, double* o) {
+  o[0] = s.t0;
+  for (int i = 0; i < 3; ++i) {
+    o[1 + i] = s.p0[i];
+    o[4 + i] = s.v0[i];
+    o[7 + i] = s.acc[i];
+    o[11 + i] = s.p1[i];
+    o[14 + i] = s.v1[i];
+    o[17 + i] = s.v1_post[i];
+    o[20 + i] = s.normal[i];
+  }
+  o[10] = s.t1;
+}
+
+V3 contact_velocity(V3 v, V3 n, V3 a, double e, double mu_t) {
+  const double vn = inner(v, n);
+  const V3 tangential = v - vn * n;
+  const bool impact = -vn > REST_SPEED;
+  const bool settles = (e * -vn <= REST_SPEED) && (inner(n, a) < 0);
+  if (!impact) return tangential;
+  if (settles) return tangential * (mu_t == 1.0 ? 1.0 : 0.0);
+  return reset(v, n, e, mu_t);
+}
+
+struct Ball {
+  double e, mu_t, radius;
+  V3 position, velocity;
+  Rates rates;
+};
+
+struct Step {  // the state a segment starts from, and its structure so far
+  double t;
+  V3 p, v;
+  int32_t kind, support;
+  double n;
+};
+
+inline int support_face(int32_t support) { return support > 0 ? support : 0; }
+
+void slide_frame(const Faces& fc, int32_t support, V3 v, V3 a, V3* sv, V3* sa) {
+  const V3 n = fc.normal(support_face(support));
+  *sv = v - inner(v, n) * n;
+  *sa = a - inner(a, n) * n;
+}
+
+// How the segment starting at st ends: (reason, face).
+void decide_end(const Faces& fc, const Ball& b, const Step& st, double t_end, ContactSearch& search,
+                int32_t* reason, int32_t* face) {
+  const V3 a = v3(0.0, 0.0, -1.0) * fc.s->gravity;
+  if (st.kind == TRAIN) {
+    const Series s = series(st.v, fc.normal(support_face(st.support)), a);
+    const double duration = series_end(s, st.n, b.rates).t;
+    *reason = st.t + duration >= t_end ? END : (std::isfinite(st.n) ? BOUNCES : SETTLE);
+    *face = -1;
+    return;
+  }
+  const bool sliding = st.kind == SLIDE;
+  V3 v0 = st.v, acc = a;
+  if (sliding) slide_frame(fc, st.support, st.v, a, &v0, &acc);
+  const auto [tau_c, f] = search(fc, st.p, v0, acc, st.support);
+  const double tau_x = sliding ? slide_exit_time(fc, support_face(st.support), st.p, v0, acc) : kInf;
+  const double tau_b = jmin(tau_c, tau_x);
+  *reason = st.t + tau_b >= t_end ? END : (tau_c <= tau_x ? CONTACT : EXIT);
+  *face = *reason == CONTACT ? f : -1;
+}
+
+// Carry the state through one segment with structure d.
+Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& d, double t_end) {
+  const double e = b.e, mu_t = b.mu_t;
+  const V3 a = v3(0.0, 0.0, -1.0) * fc.s->gravity;
+  Segment seg;
+  seg.t0 = st.t;
+  seg.p0 = st.p;
+  seg.v0 = st.v;
+  seg.acc = a;
+  seg.normal = kZero;
+  if (d.kind == UNUSED) {
+    seg.t1 = st.t;
+    seg.p1 = st.p;
+    seg.v1 = seg.v1_post = st.v;
+    return seg;
+  }
+  if (d.kind == TRAIN) {
+    const V3 n_sup = fc.normal(support_face(d.support));
+    const Series s = series(st.v, n_sup, a);
+    double tau;
+    if (d.reason == END) {
+      tau = t_end - st.t;
+      V3 travel, vel;
+      state_at(s, tau, b.rates, d.n, &travel, &vel);
+      seg.p1 = st.p + travel;
+      seg.v1 = vel;
+    } else {
+      const Start full = series_end(s, d.n, b.rates);
+      tau = std::isfinite(full.t) ? full.t : 0.0;
+      seg.p1 = st.p + full.x;
+      seg.v1 = full.v;
+    }
+    seg.t1 = st.t + tau;
+    seg.v1_post = seg.v1;
+    seg.normal = n_sup;
+    return seg;
+  }
+  if (d.kind == SLIDE) slide_frame(fc, d.support, st.v, a, &seg.v0, &seg.acc);
+  const int face = d.face > 0 ? d.face : 0;
+  double tau_b;
+  if (d.reason == CONTACT) tau_b = face_entering_time(fc, face, st.p, seg.v0, seg.acc);
+  else if (d.reason == EXIT) tau_b = slide_exit_time(fc, support_face(d.support), st.p, seg.v0, seg.acc);
+  else tau_b = t_end - st.t;
+  if (!std::isfinite(tau_b)) tau_b = 0.0;
+  seg.p1 = ballistic_p(st.p, seg.v0, seg.acc, tau_b);
+  seg.v1 = ballistic_v(seg.v0, seg.acc, tau_b);
+  seg.v1_post = d.reason == CONTACT ? contact_velocity(seg.v1, fc.normal(face), a, e, mu_t) : seg.v1;
+  seg.t1 = st.t + tau_b;
+  return seg;
+}
+
+// Kind, support and bounce count of the segment that follows seg.
+void next_structure(const Faces& fc, const Ball& b, const Segment& seg, const Decision& d, Step* next) {
+  const double e = b.e, mu_t = b.mu_t, g = fc.s->gravity;
+  const V3 a = v3(0.0, 0.0, -1.0) * g;
+  const int face = d.face > 0 ? d.face : 0;
+  const V3 n_face = fc.normal(face);
+  const V3 post = seg.v1_post;
+  const bool settled = (std::fabs(inner(post, n_face)) <= REST_SPEED) && (inner(n_face, a) < 0);
+  const bool up = n_face[2] > 1.0 - 1e-12;
+  const bool inclined = (inner(n_face, a) < 0) && !up && (e < 1);
+  const V3 if_support = fc.normal(support_face(d.support));
+  const bool stays = (d.kind == SLIDE) && (std::fabs(inner(n_face, if_support)) < 1e-12);
+  // (Only a contact after which the ball neither stays on its face nor settles can start
+  // a train: only then is its bounce count needed.)
+  const bool may_train = d.reason == CONTACT && !stays && !settled;
+  double n_train = 0.0;
+  if (may_train && inclined) {
+    // on_bevel: a whole Zeno series, if it lands on the face and meets nothing else
+    const Series s = series(post, n_face, a);
+    const V3 x_inf = series_end(s, kInf, b.rates).x, x_one = series_end(s, 1.0, b.rates).x;
+    const double* row = fc.row(face);
+    const bool lands = on_face(seg.p1 + x_inf, row + CENTRE, row + HALF, fc.radius) &&
+                       on_face(seg.p1 + x_one, row + CENTRE, row + HALF, fc.radius);
+    const double t_total = s.period / (1.0 - e);
+    const bool clear = series_clear(fc, face, seg.p1, post, t_total, g);
+    n_train = (lands && clear) ? kInf : 0.0;
+  } else if (may_train && up) {
+    // on_upward: how many bounces provably land on the face
+    const double w = post[2];
+    const V3 u = v3(post[0], post[1], 0.0);
+    const double t_flight = 2.0 * w / g;
+    const double reach = train_reach(fc, face, seg.p1, u, w * w / (2.0 * g));
+    const double speed = std::sqrt(u[0] * u[0] + u[1] * u[1]);
+    const double y = speed > 0 ? reach / (speed > 0 ? speed * t_flight : 1.0) : kInf;
+    n_train = reach < 0 ? 0.0 : geometric_count(b.rates.by_emu, y);
+  }
+  const int32_t after_kind = (stays || settled) ? SLIDE : (((up || inclined) && n_train >= 1) ? TRAIN : FLIGHT);
+  const int32_t after_support = stays ? d.support : face;
+  int32_t kind, support;
+  switch (d.reason) {
+    case CONTACT: kind = after_kind; support = after_support; break;
+    case SETTLE: kind = SLIDE; support = d.support; break;
+    case END: kind = UNUSED; support = -1; break;
+    case EXIT: kind = FLIGHT; support = d.support; break;
+    default: kind = FLIGHT; support = -1; break;
+  }
+  if (!(kind == TRAIN || kind == SLIDE || d.reason == EXIT)) support = -1;
+  next->t = seg.t1;
+  next->p = seg.p1;
+  next->v = seg.v1_post;
+  next->kind = kind;
+  next->support = support;
+  next->n = kind == TRAIN ? n_train : 0.0;
+}
+
+struct Plan {
+  std::vector<Decision> decisions;
+  std::vector<Segment> segments;
+  int n_segments = 0;
+  bool complete = false;
+};
+
+// The discrete structure of one ball's solution and its segments (estim._solver.plan).
+void plan(const Faces& fc, const Ball& b, double t_end, int S, Plan* out, ContactSearch& search) {
+  out->decisions.assign(S, Decision{UNUSED, -1, 0.0, END, -1});
+  out->segments.resize(S);
+  Step st{0.0, b.position, b.velocity, FLIGHT, -1, 0.0};
+  int k = 0;
+  bool done = false;
+  while (k < S && !done) {
+    Decision d{st.kind, st.support, st.n, END, -1};
+    decide_end(fc, b, st, t_end, search, &d.reason, &d.face);
+    const Segment seg = advance(fc, b, st, d, t_end);
+    out->decisions[k] = d;
+    out->segments[k] = seg;
+    next_structure(fc, b, seg, d, &st);
+    ++k;
+    done = d.reason == END;
+  }
+  // Unused slots hold the final state, so that sampling past the last segment is exact.
+  const Segment last = out->segments[std::max(k - 1, 0)];
+  for (int i = k; i < S; ++i) {
+    Segment& f = out->segments[i];
+    f.t0 = f.t1 = last.t1;
+    f.p0 = f.p1 = last.p1;
+    f.v0 = f.v1 = f.v1_post = last.v1_post;
+    f.acc = f.normal = kZero;
+  }
+  out->n_segments = k;
+  out->complete = done;
+}
+
+// ---------------------------------------------------------------------------------------
+// estim._simulate: a ball inside a solid (deeper than 1 nm), and the planned path's check
+
+bool inside_solid(const Scene& sc, V3 p, double r) {
+  for (int b = 0; b < sc.n_boxes; ++b) {
+    double depth = 0.0;
+    for (int i = 0; i < 3; ++i) depth = depth + jmax(std::fabs(p[i] - sc.centre[b * 3 + i]) - sc.half[b * 3 + i], 0.0);
+    if (depth < r - INSIDE_TOL) return true;
+  }
+  for (int k = 0; k < sc.n_planes; ++k) {
+    const double height = p[0] * sc.p_normal[k * 3] + p[1] * sc.p_normal[k * 3 + 1] + p[2] * sc.p_normal[k * 3 + 2];
+    if (height < sc.p_offset[k] + r - INSIDE_TOL) return true;
+  }
+  return false;
+}
+
+bool stays_outside(const Scene& sc, double r, const Plan& pl) {
+  for (int k = 0; k < pl.n_segments; ++k) {
+    const Segment& s = pl.segments[k];
+    const double tau = 0.5 * (s.t1 - s.t0);
+    V3 middle = s.p0;
+    if (pl.decisions[k].kind != TRAIN)
+      for (int i = 0; i < 3; ++i) middle[i] = s.p0[i] + s.v0[i] * tau + 0.5 * s.acc[i] * tau * tau;
+    if (inside_solid(sc, s.p0, r) || inside_solid(sc, middle, r) || inside_solid(sc, s.p1, r)) return false;
+  }
+  return true;
+}
+
+// ---------------------------------------------------------------------------------------
+// estim._trajectory
+
+// Position and velocity at time t (estim._trajectory.sample).
+void sample(const Plan& pl, const Rates& c, double g, double t, V3* p, V3* v) {
+  const int S = static_cast<int>(pl.segments.size());
+  int count = 0;
+  for (int k = 0; k < S; ++k) count += (pl.decisions[k].kind != UNUSED ? pl.segments[k].t0 : kInf) <= t;
+  const int k = static_cast<int>(clip_index(count - 1, S - 1));
+  const Segment& s = pl.segments[k];
+  const double tau = t - s.t0;
+  if (pl.decisions[k].kind == TRAIN) {
+    const V3 a = v3(0.0, 0.0, -1.0) * g;
+    const bool is_train = inner(s.v0, s.normal) > 0;
+    const V3 normal = is_train ? s.normal : kUp;
+    const Series sr = series(is_train ? s.v0 : normal, normal, a);
+    V3 dp;
+    state_at(sr, tau, c, pl.decisions[k].n, &dp, v);
+    *p = s.p0 + dp;
+  } else {
+    for (int i = 0; i < 3; ++i) (*p)[i] = s.p0[i] + s.v0[i] * tau + 0.5 * s.acc[i] * (tau * tau);
+    *v = ballistic_v(s.v0, s.acc, tau);
+  }
+}
+
+struct Event {
+  double t;
+  V3 position, pre, post;
+  int32_t face, kind;
+};
+
+// The bounces of a train that are listed, and the event slots a segment takes (capped).
+void listed(const Segment& seg, const Decision& d, const Rates& c, double g, int max_events, double* bounces,
+            double* capped) {
+  const double e = c.e;
+  const bool is_train = d.kind == TRAIN;
+  const bool contact = (d.reason == CONTACT) && (d.kind != UNUSED);
+  const double a_n = (is_train ? seg.normal[2] : 1.0) * -g;
+  const double w = is_train ? inner(seg.v0, seg.normal) : 1.0;
+  const double t_flight = 2.0 * w / -a_n;
+  const double before_end = geometric_count(c.by_e, (seg.t1 - seg.t0) / t_flight);
+  double b = d.reason == BOUNCES ? d.n : jmin(before_end, d.n);
+  const bool proper = e > 0 && e < 1;
+  const double le = std::log(proper ? e : 0.5);
+  const double ratio = std::log(LISTED_FLIGHT / t_flight);
+  double listable = t_flight >= LISTED_FLIGHT ? std::floor(ratio / le) + 1.0 : 0.0;
+  listable = proper ? listable : (e == 0 ? 0.0 : kInf);
+  if (!std::isfinite(d.n)) b = jmin(b, listable);
+  const double settles = (is_train && d.reason == SETTLE) ? 1.0 : 0.0;
+  const double total = contact ? 1.0 : (is_train ? b : 0.0) + settles;
+  *bounces = b;
+  *capped = jmin(total, max_events + 1.0);
+}
+
+// Bounce j (from 1) of the train segment s (estim._trajectory._bounce / estim._train.bounce).
+void train_bounce(const Segment& s, double j, const Rates& c, double g, Event* ev) {
+  const bool is_train = inner(s.v0, s.normal) > 0;
+  const V3 normal = is_train ? s.normal : kUp;
+  const Series sr = series(is_train ? s.v0 : normal, normal, v3(0.0, 0.0, -1.0) * g);
+  const Start at = flight_start(sr, j, c);
+  const Start before = flight_start(sr, j - 1.0, c);
+  const double tau = at.t - before.t;
+  const V3 a_full = sr.a_t + sr.a_n * sr.normal;
+  ev->t = s.t0 + at.t;
+  ev->position = s.p0 + at.x;
+  ev->pre = before.v + a_full * tau;
+  ev->post = at.v;
+}
+
+// The event list of one ball (estim._trajectory.list_events_used); returns the count of
+// events that happened (listed or not).
+double list_events(const Plan& pl, const Rates& c, double g, int max_events, std::vector<Event>* events) {
+  const int S = static_cast<int>(pl.segments.size());
+  std::vector<double> bounces(S, 0.0), ends(S, 0.0), capped(S, 0.0);
+  double total = 0.0;
+  for (int k = 0; k < S; ++k) {
+    if (k < pl.n_segments) listed(pl.segments[k], pl.decisions[k], c, g, max_events, &bounces[k], &capped[k]);
+    total = total + capped[k];
+    ends[k] = total;
+  }
+  events->clear();
+  for (int slot = 0; slot < max_events && slot < total; ++slot) {
+    const double i = slot;
+    int count = 0;
+    for (int k = 0; k < S; ++k) count += ends[k] <= i;
+    const int k = static_cast<int>(clip_index(count, S - 1));
+    const double local = i - (ends[k] - capped[k]) + 1.0;
+    const Segment& s = pl.segments[k];
+    const Decision& d = pl.decisions[k];
+    const bool train_slot = d.kind == TRAIN;
+    const bool settle_slot = train_slot && d.reason == SETTLE && local > bounces[k];
+    Event ev;
+    if (!train_slot || settle_slot) {
+      ev.t = s.t1;
+      ev.position = s.p1;
+      ev.pre = s.v1;
+      ev.post = s.v1_post;
+    } else {
+      train_bounce(s, local, c, g, &ev);
+    }
+    ev.face = train_slot ? d.support : d.face;
+    const V3 jump = ev.pre - ev.post;
+    const double size = std::sqrt(jump[0] * jump[0] + jump[1] * jump[1] + jump[2] * jump[2]);
+    ev.kind = (settle_slot || size <= REST_SPEED) ? REST : IMPACT;
+    events->push_back(ev);
+  }
+  return total;
+}
+
+// What one thread reuses from ball to ball.
+struct Workspace {
+  Faces faces;
+  ContactSearch search;
+  Plan plan;
+  std::vector<Event> events;
+};
+
+// ---------------------------------------------------------------------------------------
+// The FFI handlers.
+//
+// Inputs come with the shapes estim._native gives them (a batch of N balls sharing one
+// scene, t_end and ts) plus any leading axes that jax.vmap added: with
+// vmap_method="expand_dims" every input gets the same leading axes, of length 1 where it
+// is not batched. The handlers loop over the broadcast leading axes ("outer" items), each
+// a whole call of its own.
+
+// Where each part of a Trajectory's rows lives: the start column of each field in the
+// numbers (float) or the integers row, -1 where not kept. The order is that of
+// estim._native.FIELDS.
+enum Field {
+  FINAL_T, FINAL_POSITION, FINAL_VELOCITY, COMPLETE,
+  POSITION, VELOCITY,
+  EVENT_T, EVENT_POSITION, EVENT_PRE, EVENT_POST, EVENT_FACE, EVENT_KIND, EVENT_COUNT, EVENT_TRUNCATED,
+  SEG_T0, SEG_P0, SEG_V0, SEG_ACC, SEG_T1, SEG_P1, SEG_V1, SEG_V1_POST, SEG_NORMAL,
+  DEC_KIND, DEC_SUPPORT, DEC_N, DEC_REASON, DEC_FACE,
+  SOL_E, SOL_MU_T,
+  N_FIELDS
+};
+
+// The leading (vmap) axes of a call, and where outer item o of each input starts.
+struct Outer {
+  std::vector<int64_t> dims;
+  int64_t count = 1;
+
+  explicit Outer(ffi::Span<const int64_t> result_dims, int natural) {
+    for (size_t d = 0; d + natural < result_dims.size(); ++d) {
+      dims.push_back(result_dims[d]);
+      count *= result_dims[d];
+    }
+  }
+  // Whether a buffer has the leading axes and `natural` axes of its own.
+  bool fits(ffi::Span<const int64_t> buf, int natural) const {
+    if (buf.size() != dims.size() + natural) return false;
+    for (size_t d = 0; d < dims.size(); ++d)
+      if (buf[d] != 1 && buf[d] != dims[d]) return false;
+    return true;
+  }
+  // Element offset of outer item o in a buffer with these leading axes (1: broadcast).
+  int64_t offset(ffi::Span<const int64_t> buf, int64_t o) const {
+    int64_t inner = 1;
+    for (size_t d = dims.size(); d < buf.size(); ++d) inner *= buf[d];
+    int64_t off = 0, stride = 1;
+    for (size_t d = dims.size(); d-- > 0;) {
+      const int64_t i = o % dims[d];
+      o /= dims[d];
+      if (buf[d] != 1) off += i * stride;
+      stride *= buf[d];
+    }
+    return off * inner;
+  }
+};
+
+template <ffi::DataType T>
+const ffi::NativeType<T>* at(const Outer& outer, const ffi::Buffer<T>& b, int64_t o) {
+  return b.typed_data() + outer.offset(b.dimensions(), o);
+}
+
+struct SceneBuffers {
+  ffi::Buffer<ffi::F64> row, growth;
+  ffi::Buffer<ffi::S32> rank, lower;
+  ffi::Buffer<ffi::F64> box_lo, box_hi, centre, half, p_normal, p_offset, gravity;
+
+  bool fit(const Outer& outer) const {
+    return outer.fits(row.dimensions(), 2) && outer.fits(growth.dimensions(), 1) &&
+           outer.fits(rank.dimensions(), 1) && outer.fits(lower.dimensions(), 2) &&
+           outer.fits(box_lo.dimensions(), 2) && outer.fits(box_hi.dimensions(), 2) &&
+           outer.fits(centre.dimensions(), 2) && outer.fits(half.dimensions(), 2) &&
+           outer.fits(p_normal.dimensions(), 2) && outer.fits(p_offset.dimensions(), 1) &&
+           outer.fits(gravity.dimensions(), 0);
+  }
+  Scene scene(const Outer& outer, int64_t o) const {
+    const auto last = [](const auto& b) { return b.dimensions()[b.dimensions().size() - 1]; };
+    const auto first_own = [&](const auto& b, int natural) { return b.dimensions()[b.dimensions().size() - natural]; };
+    Scene s;
+    s.n_faces = static_cast<int>(last(growth));
+    s.n_solids = static_cast<int>(first_own(box_lo, 2));
+    s.n_boxes = static_cast<int>(first_own(centre, 2));
+    s.n_planes = static_cast<int>(last(p_offset));
+    s.row = at(outer, row, o);
+    s.growth = at(outer, growth, o);
+    s.rank = at(outer, rank, o);
+    s.lower = at(outer, lower, o);
+    s.box_lo = at(outer, box_lo, o);
+    s.box_hi = at(outer, box_hi, o);
+    s.centre = at(outer, centre, o);
+    s.half = at(outer, half, o);
+    s.p_normal = at(outer, p_normal, o);
+    s.p_offset = at(outer, p_offset, o);
+    s.gravity = at(outer, gravity, o)[0];
+    return s;
+  }
+};
+
+struct BallBuffers {
+  ffi::Buffer<ffi::F64> e, mu_t, radius, position, velocity;
+
+  bool fit(const Outer& outer) const {
+    return outer.fits(e.dimensions(), 1) && outer.fits(mu_t.dimensions(), 1) && outer.fits(radius.dimensions(), 1) &&
+           outer.fits(position.dimensions(), 2) && outer.fits(velocity.dimensions(), 2);
+  }
+  Ball ball(const Outer& outer, int64_t o, int64_t i) const {
+    const double e_i = at(outer, e, o)[i], mu_i = at(outer, mu_t, o)[i];
+    return Ball{e_i, mu_i, at(outer, radius, o)[i], load3(at(outer, position, o) + 3 * i),
+                load3(at(outer, velocity, o) + 3 * i), Rates(e_i, mu_i)};
+  }
+};
+
+// The balls as rows of parameters (estim._record's packing of estim.Params), with the
+// columns where e, mu_t, radius, position and velocity start.
+struct BallRows {
+  ffi::Buffer<ffi::F64> rows;
+  ffi::Span<const int64_t> columns;
+
+  bool fit(const Outer& outer) const {
+    const auto d = rows.dimensions();
+    if (!outer.fits(d, 2) || columns.size() != 5) return false;
+    const int64_t width = d[d.size() - 1];
+    for (size_t k = 0; k < 5; ++k)  // e, mu_t, radius: one column; position, velocity: three
+      if (columns[k] < 0 || columns[k] + (k < 3 ? 1 : 3) > width) return false;
+    return true;
+  }
+  Ball ball(const Outer& outer, int64_t o, int64_t i) const {
+    const auto d = rows.dimensions();
+    const double* r = at(outer, rows, o) + d[d.size() - 1] * i;
+    const double e = r[columns[0]], mu = r[columns[1]];
+    return Ball{e, mu, r[columns[2]], load3(r + columns[3]), load3(r + columns[4]), Rates(e, mu)};
+  }
+};
+
+// Runs fn(first, last) over [0, n) on XLA's intra-op thread pool, in chunks, and waits.
+template <typename Fn>
+void parallel_for(ffi::ThreadPool& pool, int64_t n, int64_t grain, Fn fn) {
+  const int64_t workers = std::max<int64_t>(1, pool.num_threads());
+  const int64_t chunks = std::min<int64_t>(workers, std::max<int64_t>(1, n / grain));
+  if (chunks <= 1) {
+    fn(0, n);
+    return;
+  }
+  std::atomic<int64_t> left(chunks - 1);
+  for (int64_t c = 1; c < chunks; ++c) {
+    pool.Schedule([&, c] {
+      fn(n * c / chunks, n * (c + 1) / chunks);
+      left.fetch_sub(1, std::memory_order_release);
+    });
+  }
+  fn(0, n / chunks);
+  while (left.load(std::memory_order_acquire) > 0) std::this_thread::yield();
+}
+
+const ffi::Error kShapes = ffi::Error::InvalidArgument("estim: the native solver got inputs of unexpected shapes");
+
+// Plan every ball: decisions, segments, segment count and completion (estim._solver.Plan).
+ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::Buffer<ffi::F64> growth,
+                    ffi::Buffer<ffi::S32> rank, ffi::Buffer<ffi::S32> lower, ffi::Buffer<ffi::F64> box_lo,
+                    ffi::Buffer<ffi::F64> box_hi, ffi::Buffer<ffi::F64> centre, ffi::Buffer<ffi::F64> half,
+                    ffi::Buffer<ffi::F64> p_normal, ffi::Buffer<ffi::F64> p_offset, ffi::Buffer<ffi::F64> gravity,
+                    ffi::Buffer<ffi::F64> balls, ffi::Buffer<ffi::F64> t_end, ffi::ResultBuffer<ffi::S32> kind, ffi::ResultBuffer<ffi::S32> support, ffi::ResultBuffer<ffi::F64> n,
+                    ffi::ResultBuffer<ffi::S32> reason, ffi::ResultBuffer<ffi::S32> face,
+                    ffi::ResultBuffer<ffi::F64> segments, ffi::ResultBuffer<ffi::S32> n_segments,
+                    ffi::ResultBuffer<ffi::PRED> complete, ffi::Span<const int64_t> columns) {
+  const SceneBuffers sb{row, growth, rank, lower, box_lo, box_hi, centre, half, p_normal, p_offset, gravity};
+  const BallRows bb{balls, columns};
+  const Outer outer(kind->dimensions(), 2);  // kind: (..., N, S)
+  if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(t_end.dimensions(), 0)) return kShapes;
+  const auto own = kind->dimensions();
+  const int64_t N = own[own.size() - 2], S = own[own.size() - 1];
+  parallel_for(pool, outer.count * N, 256, [&](int64_t first, int64_t last) {
+    Workspace ws;
+    Plan& pl = ws.plan;
+    for (int64_t w = first; w < last; ++w) {
+      const int64_t o = w / N, i = w % N;
+      const Scene sc = sb.scene(outer, o);
+      const Ball b = bb.ball(outer, o, i);
+      ws.faces.reset(&sc, b.radius);
+      plan(ws.faces, b, at(outer, t_end, o)[0], static_cast<int>(S), &pl, ws.search);
+      for (int64_t k = 0; k < S; ++k) {
+        const Decision& d = pl.decisions[k];
+        const int64_t slot = w * S + k;
+        kind->typed_data()[slot] = d.kind;
+        support->typed_data()[slot] = d.support;
+        n->typed_data()[slot] = d.n;
+        reason->typed_data()[slot] = d.reason;
+        face->typed_data()[slot] = d.face;
+        write_segment(pl.segments[k], segments->typed_data() + slot * SEGMENT_NUMBERS);
+      }
+      n_segments->typed_data()[w] = pl.n_segments;
+      complete->typed_data()[w] = pl.complete;
+    }
+  });
+  return ffi::Error::Success();
+}
+
+// The inputs of one ball against the checks of estim._simulate._INPUT_CHECKS: 0 if all
+// pass, else 1 + the index of the first that fails.
+int input_code(const Scene& sc, const Ball& b, bool has_mass, double mass, double drag, V3 spin, double t_end,
+               const double* ts, int64_t T) {
+  const bool bad[] = {
+      !(b.e >= 0 && b.e <= 1),
+      !(b.mu_t >= 0 && b.mu_t <= 1),
+      !(b.radius > 0),
+      !all_finite(b.position),
+      !all_finite(b.velocity),
+      has_mass && !(mass > 0),
+      !(drag >= 0),
+      !all_finite(spin),
+  };
+  for (int k = 0; k < 8; ++k)
+    if (bad[k]) return k + 1;
+  if (!(std::isfinite(t_end) && t_end > 0)) return 9;
+  for (int64_t j = 0; j < T; ++j)
+    if (!(std::isfinite(ts[j]) && ts[j] >= 0 && ts[j] <= t_end)) return 10;
+  if (inside_solid(sc, b.position, b.radius)) return 11;
+  return 0;
+}
+
+// One ball's Trajectory rows (estim._simulate: plan, samples, events, final state, dense
+// solution, packed as estim._record lays them out); returns its check code.
+int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts, int64_t T, int S, int E,
+                    ffi::Span<const int64_t> fields, double* num, int32_t* ints, Workspace& ws) {
+  Plan& pl = ws.plan;
+  const double g = sc.gravity;
+  auto put = [&](Field f, int64_t k, double x) { num[fields[f] + k] = x; };
+  auto put3 = [&](Field f, int64_t k, V3 x) {
+    for (int c = 0; c < 3; ++c) num[fields[f] + 3 * k + c] = x[c];
+  };
+  auto put_int = [&](Field f, int64_t k, int32_t x) { ints[fields[f] + k] = x; };
+  ws.faces.reset(&sc, b.radius);
+  plan(ws.faces, b, te, S, &pl, ws.search);
+  const bool complete = pl.complete && stays_outside(sc, b.radius, pl);
+  const Segment& last_seg = pl.segments[std::max(pl.n_segments - 1, 0)];
+  put(FINAL_T, 0, te);
+  put3(FINAL_POSITION, 0, last_seg.p1);
+  put3(FINAL_VELOCITY, 0, last_seg.v1_post);
+  put_int(COMPLETE, 0, complete);
+  if (fields[POSITION] >= 0) {
+    for (int64_t j = 0; j < T; ++j) {
+      V3 p, v;
+      sample(pl, b.rates, g, ts[j], &p, &v);
+      put3(POSITION, j, p);
+      put3(VELOCITY, j, v);
+    }
+  }
+  if (fields[EVENT_T] >= 0) {
+    const double total = list_events(pl, b.rates, g, E, &ws.events);
+    for (int j = 0; j < E; ++j) {
+      const bool used = j < static_cast<int>(ws.events.size());
+      const Event ev = used ? ws.events[j] : Event{kInf, kZero, kZero, kZero, -1, -1};
+      put(EVENT_T, j, ev.t);
+      put3(EVENT_POSITION, j, ev.position);
+      put3(EVENT_PRE, j, ev.pre);
+      put3(EVENT_POST, j, ev.post);
+      put_int(EVENT_FACE, j, ev.face);
+      put_int(EVENT_KIND, j, ev.kind);
+    }
+    put_int(EVENT_COUNT, 0, static_cast<int32_t>(jmin(total, E)));
+    put_int(EVENT_TRUNCATED, 0, total > E);
+  }
+  if (fields[SEG_T0] >= 0) {
+    for (int k = 0; k < S; ++k) {
+      const Segment& s = pl.segments[k];
+      const Decision& d = pl.decisions[k];
+      put(SEG_T0, k, s.t0);
+      put3(SEG_P0, k, s.p0);
+      put3(SEG_V0, k, s.v0);
+      put3(SEG_ACC, k, s.acc);
+      put(SEG_T1, k, s.t1);
+      put3(SEG_P1, k, s.p1);
+      put3(SEG_V1, k, s.v1);
+      put3(SEG_V1_POST, k, s.v1_post);
+      put3(SEG_NORMAL, k, s.normal);
+      put_int(DEC_KIND, k, d.kind);
+      put_int(DEC_SUPPORT, k, d.support);
+      put(DEC_N, k, d.n);
+      put_int(DEC_REASON, k, d.reason);
+      put_int(DEC_FACE, k, d.face);
+    }
+    put(SOL_E, 0, b.e);
+    put(SOL_MU_T, 0, b.mu_t);
+  }
+  return complete ? 0 : 12;
+}
+
+// Every ball's Trajectory rows, with the argument checks when asked: then the first
+// failing check over the balls (the smallest code, as estim._simulate orders them) is
+// returned as an error carrying its message (`messages`: one per line, in code order).
+ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::Buffer<ffi::F64> growth,
+                          ffi::Buffer<ffi::S32> rank, ffi::Buffer<ffi::S32> lower, ffi::Buffer<ffi::F64> box_lo,
+                          ffi::Buffer<ffi::F64> box_hi, ffi::Buffer<ffi::F64> centre, ffi::Buffer<ffi::F64> half,
+                          ffi::Buffer<ffi::F64> p_normal, ffi::Buffer<ffi::F64> p_offset,
+                          ffi::Buffer<ffi::F64> gravity, ffi::Buffer<ffi::F64> e, ffi::Buffer<ffi::F64> mu_t,
+                          ffi::Buffer<ffi::F64> radius, ffi::Buffer<ffi::F64> position,
+                          ffi::Buffer<ffi::F64> velocity, ffi::Buffer<ffi::F64> mass, ffi::Buffer<ffi::F64> drag,
+                          ffi::Buffer<ffi::F64> spin, ffi::Buffer<ffi::F64> t_end, ffi::Buffer<ffi::F64> ts,
+                          ffi::ResultBuffer<ffi::F64> record, ffi::ResultBuffer<ffi::S32> flags, int64_t max_segments,
+                          int64_t max_events, bool checks, ffi::Span<const int64_t> fields, std::string_view messages) {
+  const SceneBuffers sb{row, growth, rank, lower, box_lo, box_hi, centre, half, p_normal, p_offset, gravity};
+  const BallBuffers bb{e, mu_t, radius, position, velocity};
+  const Outer outer(record->dimensions(), 2);  // record: (..., N, numbers)
+  if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(mass.dimensions(), 1) || !outer.fits(drag.dimensions(), 1) ||
+      !outer.fits(spin.dimensions(), 2) || !outer.fits(t_end.dimensions(), 0) || !outer.fits(ts.dimensions(), 1) ||
+      fields.size() != N_FIELDS)
+    return kShapes;
+  const auto own = record->dimensions();
+  const int64_t N = own[own.size() - 2], n_numbers = own[own.size() - 1];
+  const int64_t n_integers = flags->dimensions()[flags->dimensions().size() - 1];
+  const int64_t T = ts.dimensions()[ts.dimensions().size() - 1];
+  // mass, drag and spin (read by the checks only) come one per ball or one for all; no
+  // mass at all where the parameters have none.
+  const auto count_of = [](const auto& b, int natural) { return b.dimensions()[b.dimensions().size() - natural]; };
+  const int64_t n_mass = count_of(mass, 1), n_drag = count_of(drag, 1), n_spin = count_of(spin, 2);
+  if (!(n_mass == 0 || n_mass == 1 || n_mass == N) || !(n_drag == 1 || n_drag == N) || !(n_spin == 1 || n_spin == N))
+    return kShapes;
+  const bool has_mass = n_mass > 0;
+  std::vector<int> codes(checks ? outer.count * N : 0, 0);
+
+  parallel_for(pool, outer.count * N, 64, [&](int64_t first, int64_t last) {
+    Workspace ws;
+    for (int64_t w = first; w < last; ++w) {
+      const int64_t o = w / N, i = w % N;
+      const Scene sc = sb.scene(outer, o);
+      const Ball b = bb.ball(outer, o, i);
+      const double te = at(outer, t_end, o)[0];
+      const double* times = at(outer, ts, o);
+      const int complete_code = trajectory_rows(sc, b, te, times, T, static_cast<int>(max_segments),
+                                                static_cast<int>(max_events), fields, record->typed_data() + w * n_numbers,
+                                                flags->typed_data() + w * n_integers, ws);
+      if (checks) {
+        const double m = has_mass ? at(outer, mass, o)[n_mass == N ? i : 0] : 1.0;
+        const double cd = at(outer, drag, o)[n_drag == N ? i : 0];
+        const V3 spin_i = load3(at(outer, spin, o) + 3 * (n_spin == N ? i : 0));
+        const int code = input_code(sc, b, has_mass, m, cd, spin_i, te, times, T);
+        codes[w] = code > 0 ? code : complete_code;
+      }
+    }
+  });
+
+  int first = 0;
+  for (int c : codes)
+    if (c > 0 && (first == 0 || c < first)) first = c;
+  if (first > 0) {
+    std::string_view rest = messages;
+    for (int k = 1; k < first && rest.find('\n') != std::string_view::npos; ++k) rest = rest.substr(rest.find('\n') + 1);
+    return ffi::Error::InvalidArgument(std::string(rest.substr(0, rest.find('\n'))));
+  }
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+// Both handlers' first arguments: XLA's thread pool, then the scene (in the order of
+// estim._native._scene_operands).
+static auto scene_binding() {
+  return ffi::Ffi::Bind()
+      .Ctx<ffi::ThreadPool>()
+      .Arg<ffi::Buffer<ffi::F64>>()   // face rows
+      .Arg<ffi::Buffer<ffi::F64>>()   // growth
+      .Arg<ffi::Buffer<ffi::S32>>()   // rank
+      .Arg<ffi::Buffer<ffi::S32>>()   // lower
+      .Arg<ffi::Buffer<ffi::F64>>()   // box_lo
+      .Arg<ffi::Buffer<ffi::F64>>()   // box_hi
+      .Arg<ffi::Buffer<ffi::F64>>()   // box centres
+      .Arg<ffi::Buffer<ffi::F64>>()   // box half sizes
+      .Arg<ffi::Buffer<ffi::F64>>()   // plane normals
+      .Arg<ffi::Buffer<ffi::F64>>()   // plane offsets
+      .Arg<ffi::Buffer<ffi::F64>>();  // gravity
+}
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimPlan, PlanImpl,
+                              scene_binding()
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // balls: rows of parameters
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // t_end
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // kind
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // support
+                                  .Ret<ffi::Buffer<ffi::F64>>()  // n
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // reason
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // face
+                                  .Ret<ffi::Buffer<ffi::F64>>()  // segments
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // n_segments
+                                  .Ret<ffi::Buffer<ffi::PRED>>()  // complete
+                                  .Attr<ffi::Span<const int64_t>>("columns"));  // of e, mu_t, radius, position, velocity
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimTrajectory, TrajectoryImpl,
+                              scene_binding()
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // e
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // mu_t
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // radius
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // position
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // velocity
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // mass (or empty)
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // drag coefficient
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // spin
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // t_end
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // ts
+                                  .Ret<ffi::Buffer<ffi::F64>>()  // record
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // flags
+                                  .Attr<int64_t>("max_segments")
+                                  .Attr<int64_t>("max_events")
+                                  .Attr<bool>("checks")
+                                  .Attr<ffi::Span<const int64_t>>("fields")
+                                  .Attr<std::string_view>("messages"));
+
+// A Python module whose `handlers()` gives the two handlers as capsules, for
+// jax.ffi.register_ffi_target.
+static PyObject* handlers(PyObject*, PyObject*) {
+  return Py_BuildValue("{s:N,s:N}", "estim_plan", PyCapsule_New(reinterpret_cast<void*>(EstimPlan), nullptr, nullptr),
+                       "estim_trajectory",
+                       PyCapsule_New(reinterpret_cast<void*>(EstimTrajectory), nullptr, nullptr));
+}
+
+static PyMethodDef kMethods[] = {
+    {"handlers", handlers, METH_NOARGS, "The XLA FFI handlers of estim's closed-form solver, as capsules."},
+    {nullptr, nullptr, 0, nullptr}};
+
+static PyModuleDef kModule = {PyModuleDef_HEAD_INIT, "_kernels",
+                              "estim's closed-form solver as native CPU kernels (XLA FFI handlers).", -1, kMethods};
+
+PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&kModule); }

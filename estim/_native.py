@@ -1,0 +1,244 @@
+"""The closed-form solver's primal on native CPU kernels, its derivatives in JAX.
+
+``estim/_kernels.cc`` ports the gravity-only solver of ``estim._solver``,
+``estim._contact``, ``estim._train`` and ``estim._trajectory`` line by line to C++, and
+JAX calls it through its foreign function interface (``jax.ffi``). What the kernels
+compute is the *primal*: each ball's plan (the discrete structure of its solution and its
+segments) and its packed :class:`estim.Trajectory` rows. Derivatives never enter them:
+
+- :func:`plan` gives the same :class:`estim._solver.Plan` as the JAX planner, as values
+  with no derivatives (the JAX planner stops gradients too); ``segments_of`` then
+  differentiates by replaying the structure in JAX, as before.
+- :func:`trajectory_rows` is a ``jax.custom_jvp``: its tangent replays the ball's
+  structure (found by :func:`plan`) through the same differentiable JAX pipeline that
+  the JAX path runs (``estim._simulate.ball_parts``): samples, events, final state and
+  dense solution, packed. Forward and reverse mode, ``vmap`` and ``jit`` all compose.
+
+Why: the JAX program of the event loop is one XLA kernel of some 26,000 HLO lines, which
+XLA:CPU takes 2.5 s to compile at every new process and whose buffers cost a call some
+tens of microseconds; the kernels are compiled once, at install (docs/pages/speed.md).
+
+The kernels run on the CPU backend only. Where they are not built (no C++ compiler at
+install), where JAX's default backend is not the CPU, or with ``ESTIM_NATIVE=0`` in the
+environment, estim runs the JAX planner instead: the same results, to rounding
+(``tests/test_native.py`` checks them ball by ball). :func:`active` says which.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._config import keep_loop
+from ._contact import faces_for
+from ._record import Layout, layout_of, pack
+from ._scene import Scene
+from ._solver import Decision, Plan, Segment
+from ._trajectory import KEEP, ClosedFormSolution, Events, State, trajectory_parts
+
+try:  # the extension built from estim/_kernels.cc (setup.py)
+    from . import _kernels
+except ImportError:  # pragma: no cover - an install without a C++ compiler
+    _kernels = None
+
+__all__ = ["available", "active", "plan", "active_plan", "trajectory_rows", "trajectory_layout", "FIELDS"]
+
+# The fields of a Trajectory's rows the kernel writes, in the order of its `Field` enum.
+FIELDS = (
+    "final.t", "final.position", "final.velocity", "complete",
+    "position", "velocity",
+    "events.t", "events.position", "events.velocity_pre", "events.velocity_post", "events.face",
+    "events.kind", "events.count", "events.truncated",
+    "solution.segments.t0", "solution.segments.p0", "solution.segments.v0", "solution.segments.acc",
+    "solution.segments.t1", "solution.segments.p1", "solution.segments.v1", "solution.segments.v1_post",
+    "solution.segments.normal",
+    "solution.structure.kind", "solution.structure.support", "solution.structure.n",
+    "solution.structure.reason", "solution.structure.face",
+    "solution.e", "solution.mu_t",
+)
+# Numbers per segment in the plan kernel's output: t0, p0, v0, acc, t1, p1, v1, v1_post, normal.
+_SEGMENT = (("t0", 1), ("p0", 3), ("v0", 3), ("acc", 3), ("t1", 1), ("p1", 3), ("v1", 3), ("v1_post", 3),
+            ("normal", 3))
+
+# Whether estim uses the kernels where it can (tests switch it to compare both paths).
+ENABLED = os.environ.get("ESTIM_NATIVE", "1") != "0"
+
+
+def available() -> bool:
+    """Whether the native kernels were built (at install)."""
+    return _kernels is not None
+
+
+def active() -> bool:
+    """Whether the closed-form path runs on the native kernels now: built, not switched
+    off (``ESTIM_NATIVE=0``), and JAX's default backend is the CPU."""
+    return ENABLED and _kernels is not None and jax.default_backend() == "cpu"
+
+
+@functools.cache
+def _register() -> None:
+    for name, capsule in _kernels.handlers().items():
+        jax.ffi.register_ffi_target(name, capsule, platform="cpu")
+
+
+def _scene_operands(scene: Scene) -> tuple:
+    """The scene as the kernels read it: the face table (``estim._contact.Faces``, for
+    radius 0: the kernels grow it by each ball's radius), the solids and gravity."""
+    faces = faces_for(scene, jnp.float64(0.0))
+    return (faces.row, faces.growth, faces.rank.astype(jnp.int32), faces.lower.astype(jnp.int32),
+            faces.box_lo, faces.box_hi, scene.box_centre, scene.box_half, scene.plane_normal,
+            scene.plane_offset, scene.gravity)
+
+
+def _ball_operands(params, shape: tuple[int, ...]) -> tuple:
+    """e, mu_t, radius, position, velocity of the balls, broadcast to ``shape`` and
+    flattened to one axis of balls."""
+
+    def flat(x, event):
+        return jnp.broadcast_to(x, shape + event).reshape((-1,) + event)
+
+    return (flat(params.e, ()), flat(params.mu_t, ()), flat(params.radius, ()), flat(params.position, (3,)),
+            flat(params.velocity, (3,)))
+
+
+def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
+    """``estim._solver.plan`` on the native kernel, for balls of any batch shape: the
+    discrete structure of each ball's solution and its segments, as values (no
+    derivatives flow through a plan)."""
+    from ._simulate import flat_params
+
+    _register()
+    scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
+    batch = params.batch_shape
+    # One row of parameters per ball, packed as the JAX loop over balls packs them
+    # (estim._simulate.map_balls): where both run, as in a derivative, XLA gathers them once.
+    flat = flat_params(params)
+    n = flat.e.shape[0]
+    layout = layout_of({"params": flat}, 1)
+    rows, _ = pack({"params": flat}, layout, (n,))
+    columns = np.array([leaf.start for leaf in layout.parts[0][2][:5]], dtype=np.int64)  # e, mu_t, radius, position, velocity
+    S = max_segments
+
+    def out(shape, dtype):
+        return jax.ShapeDtypeStruct(shape, dtype)
+
+    shapes = (out((n, S), jnp.int32), out((n, S), jnp.int32), out((n, S), jnp.float64), out((n, S), jnp.int32),
+              out((n, S), jnp.int32), out((n, S, 23), jnp.float64), out((n,), jnp.int32), out((n,), jnp.bool_))
+    call = jax.ffi.ffi_call("estim_plan", shapes, vmap_method="expand_dims")
+    kind, support, count, reason, face, numbers, n_segments, complete = call(
+        *_scene_operands(scene), rows, t_end, columns=columns)
+    columns, start = {}, 0
+    for name, size in _SEGMENT:
+        columns[name] = numbers[..., start] if size == 1 else numbers[..., start:start + size]
+        start += size
+
+    def unflat(x):
+        return x.reshape(batch + x.shape[1:])
+
+    decisions = Decision(kind, support, count, reason, face)
+    return Plan(decisions=jax.tree.map(unflat, decisions), segments=jax.tree.map(unflat, Segment(**columns)),
+                n_segments=unflat(n_segments), complete=unflat(complete))
+
+
+def active_plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
+    """The plan of one ball (or a batch) by the planner in use: :func:`plan` where the
+    kernels are :func:`active`, else the JAX planner ``estim._solver.plan`` (one ball)."""
+    if active():
+        return plan(scene, params, t_end, max_segments)
+    from ._solver import plan as jax_plan
+
+    return jax_plan(scene, params, t_end, max_segments)
+
+
+@functools.lru_cache(maxsize=64)
+def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: frozenset[str]) -> Layout:
+    """The layout of one ball's Trajectory rows (``estim._record``), as the JAX path packs
+    them: built from placeholder parts of the right shapes and dtypes."""
+    S, E = max_segments, max_events
+
+    def f64(*shape):
+        return np.zeros(shape)
+
+    def i32(*shape):
+        return np.zeros(shape, np.int32)
+
+    flag = np.zeros((), bool)
+    events = Events(f64(E), f64(E, 3), f64(E, 3), f64(E, 3), i32(E), i32(E), i32(), flag)
+    final = State(f64(), f64(3), f64(3))
+    segments = Segment(f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S, 3))
+    structure = Decision(i32(S), i32(S), f64(S), i32(S), i32(S))
+    solution = ClosedFormSolution(segments=segments, structure=structure, e=f64(), mu_t=f64(), gravity=f64())
+    parts = trajectory_parts(f64(n_times, 3), f64(n_times, 3), events, final, flag, solution, keep)
+    return layout_of(parts, 0)
+
+
+@functools.lru_cache(maxsize=64)
+def _field_columns(layout: Layout) -> np.ndarray:
+    """Where each field of ``FIELDS`` starts in the rows of ``layout`` (-1: not kept)."""
+    start = dict.fromkeys(FIELDS, -1)
+    for name, treedef, leaves in layout.parts:
+        placeholder = jax.tree.unflatten(treedef, [np.zeros(leaf.shape) for leaf in leaves])
+        paths = [name + jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_flatten_with_path(placeholder)[0]]
+        for path, leaf in zip(paths, leaves, strict=True):
+            if path not in start:
+                raise AssertionError(f"estim._native: the kernel does not write the trajectory field {path!r}")
+            start[path] = leaf.start
+    return np.array([start[f] for f in FIELDS], dtype=np.int64)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6, 7, 8))
+def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_events: int, keep: frozenset[str],
+                    checks: bool, messages: tuple[str, ...]):
+    """Every ball's packed Trajectory rows ``(numbers, integers)``, flat (one axis of balls
+    in the order of ``params.batch_shape``), laid out by ``trajectory_layout``. With
+    ``checks`` the kernel also checks the inputs and the completion of every ball, and
+    fails with the first message of ``messages`` that applies (in the order of
+    ``estim._simulate``)."""
+    _register()
+    batch = params.batch_shape
+    n = math.prod(batch)
+    layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep)
+    shapes = (jax.ShapeDtypeStruct((n, layout.n_numbers), jnp.float64),
+              jax.ShapeDtypeStruct((n, layout.n_integers), jnp.int32))
+    call = jax.ffi.ffi_call("estim_trajectory", shapes, vmap_method="expand_dims")
+
+    def one_or_each(x, event):  # (what the checks read: no copy of a value shared by all balls)
+        return x.reshape((1,) + event) if x.shape == event else flat(x, event)
+
+    def flat(x, event):
+        return jnp.broadcast_to(x, batch + event).reshape((n,) + event)
+
+    mass = jnp.zeros((0,)) if params.mass is None else one_or_each(params.mass, ())
+    return call(*_scene_operands(scene), *_ball_operands(params, batch), mass,
+                one_or_each(params.drag_coefficient, ()), one_or_each(params.spin, (3,)), t_end, ts,
+                max_segments=np.int64(max_segments), max_events=np.int64(max_events), checks=bool(checks),
+                fields=_field_columns(layout), messages="\n".join(messages))
+
+
+@trajectory_rows.defjvp
+def _trajectory_rows_jvp(max_segments, max_events, keep, checks, messages, primals, tangents):
+    from ._simulate import ball_parts, flat_params, map_balls
+
+    scene, params, t_end, ts = primals
+    numbers, integers = trajectory_rows(scene, params, t_end, ts, max_segments, max_events, keep, checks, messages)
+    plans = plan(scene, params, t_end, max_segments)
+    plans = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(params.batch_shape):]), plans)
+    layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep)
+
+    def rows(scene, params, t_end, ts):
+        def ball(prm, pl):
+            return pack(ball_parts(scene, prm, t_end, ts, pl, max_events, keep), layout)[0]
+
+        rows = map_balls(ball, flat_params(params), plans)
+        # As on the JAX path (estim._simulate): where the caller said what to keep, the
+        # loop stays one kernel, also for one ball; else XLA may inline it and drop what
+        # the caller leaves unused.
+        return rows if keep == frozenset(KEEP) else keep_loop(rows)
+
+    _, d_numbers = jax.jvp(rows, primals, tangents)
+    return (numbers, integers), (d_numbers, np.zeros(integers.shape, jax.dtypes.float0))

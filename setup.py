@@ -1,0 +1,21 @@
+"""Builds estim's native kernels (estim/_kernels.cc, XLA FFI handlers) against the XLA FFI
+headers that jaxlib ships. Everything else about the package is in pyproject.toml."""
+
+import os
+
+import jaxlib
+from setuptools import Extension, setup
+
+setup(
+    ext_modules=[
+        Extension(
+            "estim._kernels",
+            sources=["estim/_kernels.cc"],
+            include_dirs=[os.path.join(os.path.dirname(jaxlib.__file__), "include")],
+            language="c++",
+            extra_compile_args=["-std=c++17", "-O3", "-fvisibility=hidden", "-Wno-attributes", "-Wno-return-type"],
+            # Without a C++ compiler estim still installs, and runs the same solver in JAX.
+            optional=True,
+        )
+    ]
+)

@@ -1,0 +1,198 @@
+"""The native kernels (estim/_kernels.cc) against the JAX solver they port.
+
+On the CPU, ``estim.simulate``, the fit and the sensitivities run the closed-form primal
+on the native kernels and replay its structure in JAX for derivatives (estim._native);
+the rest of the suite tests that path against closed forms, finite differences and known
+parameters. Here the independent truth is the JAX solver itself (``estim._solver``,
+``estim._trajectory``, the path estim takes on other backends): the same discrete
+structure, bit for bit, and the same numbers to rounding, ball by ball, over balls drawn
+to hit every kind of segment.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import ROOT, jax_path, l1_depth
+
+import estim
+from estim import _native
+from estim._simulate import flat_params
+from estim._solver import plan as jax_plan
+
+# Rounding: the kernel evaluates every closed form in the order the JAX code writes it,
+# but its log, expm1 and pow are the C library's, not XLA's (which differ in the last
+# bit), and a difference of an ulp in one event time carries through the later bounces.
+# Measured over the balls below: at most 9.4e-14 relative to max(1, |x|) (s, m, m/s);
+# 1e-12 leaves a factor 10 and still catches any wrong formula, whose errors are of the
+# size of the quantities themselves.
+ROUNDING = 1e-12
+
+
+def test_kernels_are_built_and_used():
+    """The install built estim/_kernels.cc (it needs a C++ compiler; without one estim
+    installs and runs the JAX solver), and on the CPU estim uses it."""
+    assert _native.available(), "estim._kernels was not built: pip install -e . needs a C++ compiler"
+    assert jax.default_backend() == "cpu" and _native.active()
+
+
+def balls_in(scene: estim.Scene, n: int, seed: int) -> estim.Params:
+    """n balls released outside every solid: random radii, e and mu_t over [0, 1] with a
+    share at the ends (e = 0 sticks, e = 1 never settles, mu_t = 1 slides off edges),
+    slow and fast throws in every direction, some dropped at rest, over the whole scene."""
+    rng = np.random.default_rng(seed)
+    lo = np.minimum(np.min(np.asarray(scene.box_centre - scene.box_half), axis=0), -1.0)
+    hi = np.maximum(np.max(np.asarray(scene.box_centre + scene.box_half), axis=0), 1.0)
+    r = rng.choice([0.02, 0.05, 0.08, 0.2], n)
+    pos = rng.uniform(lo - 0.3, hi + 0.6, (n, 3))
+    pos[:, 1] = rng.choice([0.0, 0.0, rng.uniform(lo[1], hi[1])], n)
+    pos[:, 2] = rng.uniform(0.1, hi[2] + 1.0, n)
+    vel = rng.normal(0.0, 2.0, (n, 3)) * rng.choice([0.0, 0.3, 1.0, 5.0], (n, 1))
+    e = np.where(rng.random(n) < 0.15, rng.choice([0.0, 1.0], n), rng.uniform(0, 1, n))
+    mu = np.where(rng.random(n) < 0.2, 1.0, rng.uniform(0, 1, n))
+    depth = np.min(l1_depth(pos, scene.box_centre, scene.box_half), axis=-1, initial=np.inf)
+    height = np.min(pos @ np.asarray(scene.plane_normal).T - np.asarray(scene.plane_offset), axis=-1, initial=np.inf)
+    ok = (depth > r + 1e-6) & (height > r + 1e-6)
+    return estim.Params(e[ok], mu[ok], r[ok], pos[ok], vel[ok])
+
+
+SCENES = {
+    "stairs": lambda: estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml"),
+    "drop": lambda: estim.load_scene(ROOT / "data" / "scenes" / "drop.xml"),
+    "yard": lambda: estim.Scene.from_arrays(
+        boxes={"wall": ((3.1, 0.0, 0.5), (0.1, 2.0, 0.5)), "block": ((1.0, 0.5, 0.25), (0.25, 0.25, 0.25))},
+        planes={"ground": ((0.0, 0.0, 1.0), 0.0), "side": ((0.0, -1.0, 0.0), -1.5)},
+        gravity=9.81,
+    ),
+}
+
+
+@pytest.fixture(scope="module", params=list(SCENES))
+def scene_balls(request):
+    scene = SCENES[request.param]()
+    return scene, balls_in(scene, 300, seed=list(SCENES).index(request.param))
+
+
+def test_plan_matches_the_jax_planner(scene_balls):
+    """The kernel's plan of each ball is the JAX planner's: every decision (kind, support,
+    bounce count, why the segment ends, face) bit for bit, every segment to rounding."""
+    scene, params = scene_balls
+    t_end, S = 3.0, 48
+    native = _native.plan(scene, params, t_end, S)
+    ref = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, t_end, S)))(flat_params(params))
+    kinds = np.asarray(ref.decisions.kind)
+    assert set(np.unique(kinds)) == {0, 1, 2, 3}, "the balls should make flights, trains and slides"
+    for name in ("kind", "support", "n", "reason", "face"):
+        np.testing.assert_array_equal(getattr(native.decisions, name), getattr(ref.decisions, name), err_msg=name)
+    np.testing.assert_array_equal(native.n_segments, ref.n_segments)
+    np.testing.assert_array_equal(native.complete, ref.complete)
+    for name in ("t0", "p0", "v0", "acc", "t1", "p1", "v1", "v1_post", "normal"):
+        np.testing.assert_allclose(getattr(native.segments, name), getattr(ref.segments, name),
+                                   rtol=ROUNDING, atol=ROUNDING, err_msg=name)
+
+
+@pytest.mark.parametrize("keep", [None, (), ("events",), ("samples", "solution")])
+def test_trajectory_matches_the_jax_path(scene_balls, keep):
+    """Samples, events, final state, completion and dense solution, packed: the kernel's
+    rows are the JAX path's (integers bit for bit, numbers to rounding, padding alike)."""
+    scene, params = scene_balls
+    ts = np.linspace(0.0, 3.0, 37)
+    traj = estim.simulate(scene, params, 3.0, ts=ts, keep=keep, throw=False)
+    with jax_path():
+        ref = estim.simulate(scene, params, 3.0, ts=ts, keep=keep, throw=False)
+    assert traj.layout == ref.layout
+    np.testing.assert_array_equal(traj.flags, ref.flags)
+    np.testing.assert_allclose(traj.record, ref.record, rtol=ROUNDING, atol=ROUNDING)
+
+
+def test_derivatives_match_the_jax_path(stairs):
+    """Forward and reverse mode through the kernel (its tangent replays the structure in
+    JAX) give the JAX path's derivatives: final state, event times and samples with
+    respect to e, mu_t, the release velocity and the sample times."""
+    params = balls_in(stairs, 40, seed=7)
+    ts = jnp.linspace(0.0, 2.0, 9)
+
+    def outputs(e, mu_t, velocity, ts):
+        p = estim.Params(e, mu_t, params.radius, params.position, velocity)
+        traj = estim.simulate(stairs, p, 2.0, ts=ts, throw=False)
+        return traj.final.position, jnp.where(jnp.isfinite(traj.events.t), traj.events.t, 0.0), traj.position
+
+    args = (params.e, params.mu_t, params.velocity, ts)
+    jac = jax.jacfwd(outputs, argnums=(0, 1, 2, 3))(*args)
+    grad = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=(0, 1, 2, 3))(*args)
+    with jax_path():
+        jac_ref = jax.jacfwd(outputs, argnums=(0, 1, 2, 3))(*args)
+        grad_ref = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=(0, 1, 2, 3))(*args)
+    for x, y in zip(jax.tree.leaves((jac, grad)), jax.tree.leaves((jac_ref, grad_ref)), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9)
+
+
+def test_vmap_over_the_scene_and_t_end(stairs):
+    """Under jax.vmap the kernel broadcasts whatever is batched (here the end time, and the
+    staircase's geometry, moved as a whole): each item as its own call."""
+    golf = estim.Params(0.7, 0.98, 0.05, (-0.2, 0.0, 1.7), (1.15, 0.0, 0.0))
+    t_ends = jnp.array([0.5, 1.3, 2.3])
+    shifts = jnp.array([0.0, 0.07, -0.05])
+
+    def final(t_end, shift):
+        scene = estim.Scene(stairs.box_centre.at[:, 0].add(shift), stairs.box_half, stairs.plane_normal,
+                            stairs.plane_offset, stairs.gravity, stairs.names, stairs.face_solid,
+                            stairs.face_direction)
+        traj = estim.simulate(scene, golf, t_end, ts=jnp.linspace(0.0, 0.5, 5), keep=("samples", "events"))
+        return traj.final.position, traj.events.t, traj.position
+
+    batched = jax.vmap(final)(t_ends, shifts)
+    batched_t = jax.vmap(final, in_axes=(0, None))(t_ends, 0.02)
+    for k in range(3):
+        for got, want in zip(batched, final(t_ends[k], shifts[k]), strict=True):
+            np.testing.assert_array_equal(got[k], want)
+        for got, want in zip(batched_t, final(t_ends[k], 0.02), strict=True):
+            np.testing.assert_array_equal(got[k], want)
+
+
+def test_a_large_batch_runs_in_parallel_with_the_same_results(stairs):
+    """Large batches are shared among XLA's threads; a ball's result does not depend on
+    which thread or batch it ran in (bit for bit)."""
+    params = flat_params(balls_in(stairs, 1500, seed=3))
+    n = params.e.shape[0]
+    assert n > 256  # (the kernels split batches of at least 128 and 512 balls)
+    ts = np.linspace(0.0, 2.0, 5)
+    whole = estim.simulate(stairs, params, 2.0, ts=ts, throw=False)
+    plans = _native.plan(stairs, params, 2.0, 48)
+    for start in range(0, n, 100):
+        part = jax.tree.map(lambda x, s=start: x[s:s + 100], params)
+        one = estim.simulate(stairs, part, 2.0, ts=ts, throw=False)
+        np.testing.assert_array_equal(whole.record[start:start + 100], one.record)
+        np.testing.assert_array_equal(whole.flags[start:start + 100], one.flags)
+        np.testing.assert_array_equal(plans.segments.p1[start:start + 100],
+                                      _native.plan(stairs, part, 2.0, 48).segments.p1)
+
+
+def test_checks_inside_jit_on_the_jax_path(stairs):
+    """The JAX path checks the arguments inside jit as the kernel does, with the same
+    message (tests/test_simulate.py checks them on the kernel)."""
+    golf = stairs.ball("golf")
+
+    @jax.jit
+    def final(t_end):
+        p = estim.Params(0.7, 0.98, golf.radius, jnp.array([-0.2, 0.0, 1.7]), jnp.array([1.15, 0.0, 0.0]))
+        return estim.simulate(stairs, p, t_end, keep=("samples",)).final.position
+
+    with jax_path():
+        np.testing.assert_allclose(final(1.0), final.__wrapped__(1.0), rtol=0, atol=1e-12)
+        with pytest.raises(Exception, match="t_end must be a finite time > 0"):
+            jax.block_until_ready(final(-1.0))
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_an_empty_batch(stairs, native):
+    """No balls, no work, the right shapes (the JAX path's packing failed on it before)."""
+    none = estim.Params(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+    with contextlib.nullcontext() if native else jax_path():
+        traj = estim.simulate(stairs, none, 1.0, ts=np.linspace(0.0, 1.0, 4))
+    assert traj.final.position.shape == (0, 3) and traj.position.shape == (0, 4, 3)
+    assert traj.events.t.shape == (0, 64)
