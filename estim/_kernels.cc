@@ -112,6 +112,7 @@ struct Faces {
   // The faces of each solid, [first[b], first[b + 1]) (estim._scene lists them solid by
   // solid); empty when a scene lists them otherwise, and then no broad phase is used.
   std::vector<int> first;
+  std::vector<double> nx, ny, nz;  // the faces' normals, one array per axis
 
   // The table for a ball of radius r (reusing the buffers of the last ball).
   void reset(const Scene* scene, double r) {
@@ -127,6 +128,14 @@ struct Faces {
         for (; grouped && b <= solid; ++b) first[b] = f;
       }
       if (!grouped) first.clear();
+      nx.resize(F);
+      ny.resize(F);
+      nz.resize(F);
+      for (int f = 0; f < F; ++f) {
+        nx[f] = scene->row[f * ROW + NORMAL];
+        ny[f] = scene->row[f * ROW + NORMAL + 1];
+        nz[f] = scene->row[f * ROW + NORMAL + 2];
+      }
     }
     s = scene;
     radius = r;
@@ -143,23 +152,23 @@ struct Faces {
 // estim._contact
 
 inline bool moves_into(double g1, double g2) {
-  return (g1 < -SPEED_TOL) || ((std::fabs(g1) <= SPEED_TOL) && (g2 < -ACCEL_TOL));
+  return (g1 < -SPEED_TOL) | ((std::fabs(g1) <= SPEED_TOL) & (g2 < -ACCEL_TOL));
 }
 
+// (Without branches, so that the compiler vectorises the face loop of ContactSearch:
+// each operation as in estim._contact.entering_time, the selects as jnp.where.)
 inline __attribute__((always_inline)) double entering_time(double g0, double g1, double g2) {
   const bool touching = std::fabs(g0) <= POSITION_TOL;
   const bool pushed = moves_into(g1, g2);
-  const bool along = touching && (std::fabs(g1) <= SPEED_TOL) && (std::fabs(g2) <= ACCEL_TOL);
+  const bool along = touching & (std::fabs(g1) <= SPEED_TOL) & (std::fabs(g2) <= ACCEL_TOL);
   const double disc = g1 * g1 - 2.0 * g2 * g0;
   const bool has_root = disc > 0;
   const double s = std::sqrt(has_root ? disc : 1.0);
   const bool neg = g1 < 0;
-  const double den_a = neg ? s - g1 : 1.0;
-  const double den_b = (neg || g2 == 0) ? -1.0 : g2;
-  const double tau = neg ? 2.0 * g0 / den_a : (-g1 - s) / den_b;
-  const bool future = has_root && (tau > 0) && (neg || g2 < 0);
-  if (touching && pushed) return 0.0;
-  return (future && !along) ? tau : kInf;
+  // neg: 2 g0 / (s - g1); else (-g1 - s) / (g2, or -1 where g2 = 0)
+  const double tau = (neg ? 2.0 * g0 : -g1 - s) / (neg ? s - g1 : (g2 == 0 ? -1.0 : g2));
+  const bool future = has_root & (tau > 0) & (neg | (g2 < 0));
+  return (touching & pushed) ? 0.0 : ((future & !along) ? tau : kInf);
 }
 
 // ballistic: p + v tau + a tau^2 / 2 (as ((p + v tau) + ((0.5 a) tau) tau)), v + a tau
@@ -210,6 +219,7 @@ struct Candidate {
 struct ContactSearch {
   std::vector<Candidate> found, alive;
   std::vector<std::pair<double, int>> solids;
+  std::vector<double> time;  // per face
 
   std::pair<double, int> operator()(const Faces& fc, V3 p, V3 v, V3 a, int exclude) {
     const int F = fc.s->n_faces;
@@ -219,18 +229,29 @@ struct ContactSearch {
     const int groups = broad ? fc.s->n_solids : 1;
     for (int b = 0; b < groups; ++b) solids.emplace_back(broad ? reach_bound(fc, b, p, v, a) : 0.0, b);
     std::sort(solids.begin(), solids.end());
+    time.resize(F);
+    const double p0 = p[0], p1 = p[1], p2 = p[2], v0 = v[0], v1 = v[1], v2 = v[2], a0 = a[0], a1 = a[1], a2 = a[2];
     std::pair<double, int> best{kInf, -1};
     for (size_t k = 0; k < solids.size() && solids[k].first < kInf; ++k) {
       const int b = solids[k].second;
       const int lo = broad ? fc.first[b] : 0, hi = broad ? fc.first[b + 1] : F;
+      // Every face's entering time first, in a loop the compiler vectorises; then the
+      // few faces with a time, on the solid's box.
+      const double *nx = fc.nx.data(), *ny = fc.ny.data(), *nz = fc.nz.data(), *offset = fc.offset.data();
+      double* times = time.data();
       for (int f = lo; f < hi; ++f) {
-        const double* r = fc.row(f);
-        const V3 n = load3(r + NORMAL);
-        const double g0 = inner(n, p) - fc.offset[f], g1 = inner(n, v), g2 = inner(n, a);
+        const double g0 = ((nx[f] * p0 + ny[f] * p1) + nz[f] * p2) - offset[f];
+        const double g1 = (nx[f] * v0 + ny[f] * v1) + nz[f] * v2;
+        const double g2 = (nx[f] * a0 + ny[f] * a1) + nz[f] * a2;
         // (Away from the plane and not approaching it: entering_time is inf.)
-        if ((g0 > POSITION_TOL && g1 >= 0 && g2 >= 0) || f == exclude) continue;
+        const bool skip = ((g0 > POSITION_TOL) & (g1 >= 0) & (g2 >= 0)) | (f == exclude);
         const double t = entering_time(g0, g1, g2);
+        times[f] = skip ? kInf : t;
+      }
+      for (int f = lo; f < hi; ++f) {
+        const double t = times[f];
         if (!std::isfinite(t)) continue;
+        const double* r = fc.row(f);
         double excess = 0.0;
         for (int i = 0; i < 3; ++i)
           excess = excess + jmax(std::fabs(p[i] + v[i] * t + 0.5 * a[i] * t * t - r[CENTRE + i]) - r[HALF + i], 0.0);
@@ -359,11 +380,26 @@ bool series_clear(const Faces& fc, int face, V3 p, V3 v, double duration, double
   return true;
 }
 
-// A ratio q of geometric sums, with log(q) and expm1(log(q)) computed once (a ball's
-// closed forms sum the same few ratios again and again).
+// A ratio q of geometric sums, with log(q) and expm1(log(q)) computed on first use and
+// kept: a ball's closed forms sum the same few ratios again and again, and many balls
+// never sum some of them.
 struct Ratio {
-  double q, lq, em1;
-  explicit Ratio(double q_ = 0.5) : q(q_), lq(std::log((q_ == 1.0 || q_ == 0.0) ? 0.5 : q_)), em1(std::expm1(lq)) {}
+  double q = 0.5;
+
+  Ratio() = default;
+  explicit Ratio(double q_) : q(q_) {}
+  double lq() const { return ready(), lq_; }
+  double em1() const { return ready(), em1_; }
+
+ private:
+  mutable double lq_ = 0.0, em1_ = 0.0;
+  mutable bool ready_ = false;
+  void ready() const {
+    if (ready_) return;
+    lq_ = std::log((q == 1.0 || q == 0.0) ? 0.5 : q);
+    em1_ = std::expm1(lq_);
+    ready_ = true;
+  }
 };
 
 double geometric_sum(const Ratio& r, double n) {
@@ -371,15 +407,15 @@ double geometric_sum(const Ratio& r, double n) {
   const bool one = q == 1.0, zero = q == 0.0, finite = std::isfinite(n);
   if (one) return finite ? n + 0.5 * n * (n - 1.0) * (q - 1.0) : kInf;
   if (zero) return n >= 1 ? 1.0 + q * jmin(n - 1.0, 1.0) : 0.0;
-  if (!finite) return -1.0 / r.em1;
-  return std::expm1(jmin(n * r.lq, 0.0)) / r.em1;
+  if (!finite) return -1.0 / r.em1();
+  return std::expm1(jmin(n * r.lq(), 0.0)) / r.em1();
 }
 
 double geometric_count(const Ratio& r, double y) {
   const double q = r.q;
-  // (r.lq is log(q) for 0 < q < 1 and log(0.5) otherwise, as in estim._contact)
+  // (r.lq() is log(q) for 0 < q < 1 and log(0.5) otherwise, as in estim._contact)
   const double arg = 1.0 - y * (1.0 - q);
-  const double n_gen = arg > 0 ? std::floor(std::log(arg) / r.lq) : kInf;
+  const double n_gen = arg > 0 ? std::floor(std::log(arg) / r.lq()) : kInf;
   double n = q >= 1.0 ? std::floor(y) : (q <= 0.0 ? (y >= 1 ? kInf : 0.0) : n_gen);
   if (y < 0) n = -1.0;
   const bool finite = std::isfinite(n) && n >= 0;
@@ -770,6 +806,11 @@ void listed(const Segment& seg, const Decision& d, const Rates& c, double g, int
   const double e = c.e;
   const bool is_train = d.kind == TRAIN;
   const bool contact = (d.reason == CONTACT) && (d.kind != UNUSED);
+  if (!is_train) {  // (the bounce count of a train is all the rest is for)
+    *bounces = 0.0;
+    *capped = jmin(contact ? 1.0 : 0.0, max_events + 1.0);
+    return;
+  }
   const double a_n = (is_train ? seg.normal[2] : 1.0) * -g;
   const double w = is_train ? inner(seg.v0, seg.normal) : 1.0;
   const double t_flight = 2.0 * w / -a_n;
@@ -787,13 +828,24 @@ void listed(const Segment& seg, const Decision& d, const Rates& c, double g, int
   *capped = jmin(total, max_events + 1.0);
 }
 
-// Bounce j (from 1) of the train segment s (estim._trajectory._bounce / estim._train.bounce).
-void train_bounce(const Segment& s, double j, const Rates& c, double g, Event* ev) {
+// Where the last listed bounce of a train began its next flight (train_bounce): bounce j
+// ends flight j - 1, which the bounce before it began.
+struct LastBounce {
+  int segment = -1;
+  double j = 0.0;
+  Start at;
+};
+
+// Bounce j (from 1) of the train segment k, s (estim._trajectory._bounce /
+// estim._train.bounce).
+void train_bounce(const Segment& s, int k, double j, const Rates& c, double g, Event* ev, LastBounce* last) {
   const bool is_train = inner(s.v0, s.normal) > 0;
   const V3 normal = is_train ? s.normal : kUp;
   const Series sr = series(is_train ? s.v0 : normal, normal, v3(0.0, 0.0, -1.0) * g);
   const Start at = flight_start(sr, j, c);
-  const Start before = flight_start(sr, j - 1.0, c);
+  const bool known = last->segment == k && last->j == j - 1.0;
+  const Start before = known ? last->at : flight_start(sr, j - 1.0, c);
+  *last = LastBounce{k, j, at};
   const double tau = at.t - before.t;
   const V3 a_full = sr.a_t + sr.a_n * sr.normal;
   ev->t = s.t0 + at.t;
@@ -802,22 +854,33 @@ void train_bounce(const Segment& s, double j, const Rates& c, double g, Event* e
   ev->post = at.v;
 }
 
+// One ball's event list, and the buffers list_events fills it from.
+struct EventList {
+  std::vector<Event> events;
+  std::vector<double> bounces, ends, capped;  // per segment
+};
+
 // The event list of one ball (estim._trajectory.list_events_used); returns the count of
 // events that happened (listed or not).
-double list_events(const Plan& pl, const Rates& c, double g, int max_events, std::vector<Event>* events) {
+double list_events(const Plan& pl, const Rates& c, double g, int max_events, EventList* out) {
   const int S = static_cast<int>(pl.segments.size());
-  std::vector<double> bounces(S, 0.0), ends(S, 0.0), capped(S, 0.0);
+  std::vector<double>&bounces = out->bounces, &ends = out->ends, &capped = out->capped;
+  bounces.assign(S, 0.0);
+  ends.assign(S, 0.0);
+  capped.assign(S, 0.0);
   double total = 0.0;
   for (int k = 0; k < S; ++k) {
     if (k < pl.n_segments) listed(pl.segments[k], pl.decisions[k], c, g, max_events, &bounces[k], &capped[k]);
     total = total + capped[k];
     ends[k] = total;
   }
+  std::vector<Event>* events = &out->events;
   events->clear();
+  int count = 0;  // segments that end at or before the slot (ends never decrease)
+  LastBounce last;
   for (int slot = 0; slot < max_events && slot < total; ++slot) {
     const double i = slot;
-    int count = 0;
-    for (int k = 0; k < S; ++k) count += ends[k] <= i;
+    while (count < S && ends[count] <= i) ++count;
     const int k = static_cast<int>(clip_index(count, S - 1));
     const double local = i - (ends[k] - capped[k]) + 1.0;
     const Segment& s = pl.segments[k];
@@ -831,7 +894,7 @@ double list_events(const Plan& pl, const Rates& c, double g, int max_events, std
       ev.pre = s.v1;
       ev.post = s.v1_post;
     } else {
-      train_bounce(s, local, c, g, &ev);
+      train_bounce(s, k, local, c, g, &ev, &last);
     }
     ev.face = train_slot ? d.support : d.face;
     const V3 jump = ev.pre - ev.post;
@@ -842,13 +905,20 @@ double list_events(const Plan& pl, const Rates& c, double g, int max_events, std
   return total;
 }
 
-// What one thread reuses from ball to ball.
+// What one thread reuses from ball to ball, and from call to call (its buffers only:
+// workspace() forgets the scene, whose buffers XLA may reuse for another scene).
 struct Workspace {
   Faces faces;
   ContactSearch search;
   Plan plan;
-  std::vector<Event> events;
+  EventList events;
 };
+
+Workspace& workspace() {
+  static thread_local Workspace ws;
+  ws.faces.s = nullptr;
+  return ws;
+}
 
 // ---------------------------------------------------------------------------------------
 // The FFI handlers.
@@ -982,23 +1052,28 @@ struct BallRows {
   }
 };
 
-// Runs fn(first, last) over [0, n) on XLA's intra-op thread pool, in chunks, and waits.
+// Runs fn(first, last) over [0, n) on XLA's intra-op thread pool and the calling thread,
+// in blocks of `grain` that each takes as it comes free (balls differ in cost), and waits.
 template <typename Fn>
 void parallel_for(ffi::ThreadPool& pool, int64_t n, int64_t grain, Fn fn) {
-  const int64_t workers = std::max<int64_t>(1, pool.num_threads());
-  const int64_t chunks = std::min<int64_t>(workers, std::max<int64_t>(1, n / grain));
-  if (chunks <= 1) {
+  const int64_t blocks = (n + grain - 1) / grain;
+  const int64_t helpers = std::min<int64_t>(std::max<int64_t>(1, pool.num_threads()), blocks) - 1;
+  if (helpers <= 0) {
     fn(0, n);
     return;
   }
-  std::atomic<int64_t> left(chunks - 1);
-  for (int64_t c = 1; c < chunks; ++c) {
-    pool.Schedule([&, c] {
-      fn(n * c / chunks, n * (c + 1) / chunks);
+  std::atomic<int64_t> next(0), left(helpers);
+  const auto work = [&] {
+    for (int64_t first; (first = next.fetch_add(grain, std::memory_order_relaxed)) < n;)
+      fn(first, std::min(first + grain, n));
+  };
+  for (int64_t h = 0; h < helpers; ++h) {
+    pool.Schedule([&] {
+      work();
       left.fetch_sub(1, std::memory_order_release);
     });
   }
-  fn(0, n / chunks);
+  work();
   while (left.load(std::memory_order_acquire) > 0) std::this_thread::yield();
 }
 
@@ -1019,8 +1094,8 @@ ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::Buffer
   if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(t_end.dimensions(), 0)) return kShapes;
   const auto own = kind->dimensions();
   const int64_t N = own[own.size() - 2], S = own[own.size() - 1];
-  parallel_for(pool, outer.count * N, 256, [&](int64_t first, int64_t last) {
-    Workspace ws;
+  parallel_for(pool, outer.count * N, 64, [&](int64_t first, int64_t last) {
+    Workspace& ws = workspace();
     Plan& pl = ws.plan;
     for (int64_t w = first; w < last; ++w) {
       const int64_t o = w / N, i = w % N;
@@ -1097,9 +1172,10 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
   }
   if (fields[EVENT_T] >= 0) {
     const double total = list_events(pl, b.rates, g, E, &ws.events);
+    const std::vector<Event>& events = ws.events.events;
     for (int j = 0; j < E; ++j) {
-      const bool used = j < static_cast<int>(ws.events.size());
-      const Event ev = used ? ws.events[j] : Event{kInf, kZero, kZero, kZero, -1, -1};
+      const bool used = j < static_cast<int>(events.size());
+      const Event ev = used ? events[j] : Event{kInf, kZero, kZero, kZero, -1, -1};
       put(EVENT_T, j, ev.t);
       put3(EVENT_POSITION, j, ev.position);
       put3(EVENT_PRE, j, ev.pre);
@@ -1169,7 +1245,7 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::
   std::vector<int> codes(checks ? outer.count * N : 0, 0);
 
   parallel_for(pool, outer.count * N, 64, [&](int64_t first, int64_t last) {
-    Workspace ws;
+    Workspace& ws = workspace();
     for (int64_t w = first; w < last; ++w) {
       const int64_t o = w / N, i = w % N;
       const Scene sc = sb.scene(outer, o);
