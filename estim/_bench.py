@@ -230,6 +230,9 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         "small_loops_as_kernels": bool(estim._config.SMALL_LOOPS_AS_KERNELS),
         # Whether JAX runs programs on the calling thread (estim._config, DISPATCH).
         "sync_dispatch": bool(estim._config.dispatch_is_sync()),
+        # Whether the closed-form primal ran on the native kernels (estim._native): built at
+        # install, not switched off with ESTIM_NATIVE=0, and JAX's backend is the CPU.
+        "native": bool(estim._native.active()),
     }
     return result
 
@@ -255,16 +258,17 @@ def format_speed(r: dict) -> str:
         f"{r['forward_floor_us']:.1f} us/call",
         f"forward without jit (estim.simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
         f"gradient keeping every part (keep=None): {r['gradient_all_us']:.1f} us/call",
-        f"batch of {r['batch']}: {r['batch_us']:.1f} us/call, {r['batch_final_us']:.1f} us keeping "
-        f"only the final states, keep=() ({r['batch_incomplete']} balls incomplete within max_segments); "
-        f"import estim: {r['import_s']:.2f} s",
+        f"batch of {r['batch']}: {r['batch_us']:.1f} us/call; keeping only the final states (keep=()): "
+        f"{r['batch_final_us']:.1f} us/call, {r['batch'] / (r['batch_final_us'] * 1e-6):.3g} balls/s "
+        f"({r['batch_incomplete']} balls incomplete within max_segments); import estim: {r['import_s']:.2f} s",
         "gradient d(golf final x)/d(e, mu_t, vx0) = "
         + ", ".join(f"{v:.8f}" for v in r["gradient"].values()),
         f"machine: {r['machine']['cpu_count']} CPUs ({r['machine'].get('cpus_used', r['machine']['cpu_count'])} used), "
         f"{r['machine']['processor']}, "
         f"jax {r['machine']['jax']} ({r['machine']['backend']}); median of {r['repeats']} calls; "
         f"small loops as one kernel: {'yes' if r['machine'].get('small_loops_as_kernels') else 'NO'}; "
-        f"programs run on the calling thread: {'yes' if r['machine'].get('sync_dispatch') else 'NO'}",
+        f"programs run on the calling thread: {'yes' if r['machine'].get('sync_dispatch') else 'NO'}; "
+        f"native kernels: {'yes' if r['machine'].get('native') else 'NO (the JAX planner)'}",
     ]
     return "\n".join(lines)
 
