@@ -252,10 +252,8 @@ struct ContactSearch {
         const double t = times[f];
         if (!std::isfinite(t)) continue;
         const double* r = fc.row(f);
-        double excess = 0.0;
-        for (int i = 0; i < 3; ++i)
-          excess = excess + jmax(std::fabs(p[i] + v[i] * t + 0.5 * a[i] * t * t - r[CENTRE + i]) - r[HALF + i], 0.0);
-        if (excess <= fc.radius + ON_FACE_TOL) found.push_back(Candidate{t, fc.order[f], f});
+        if (on_face(ballistic_p(p, v, a, t), r + CENTRE, r + HALF, fc.radius))
+          found.push_back(Candidate{t, fc.order[f], f});
       }
       best = resolve(fc, p, v, a);
       if (k + 1 < solids.size() && solids[k + 1].first > best.first + 1e-12) break;
@@ -757,14 +755,15 @@ bool inside_solid(const Scene& sc, V3 p, double r) {
   return false;
 }
 
+// (Each point once: a segment starts where the one before it ends, and a bounce series'
+// middle is taken at its start.)
 bool stays_outside(const Scene& sc, double r, const Plan& pl) {
+  if (pl.n_segments > 0 && inside_solid(sc, pl.segments[0].p0, r)) return false;
   for (int k = 0; k < pl.n_segments; ++k) {
     const Segment& s = pl.segments[k];
-    const double tau = 0.5 * (s.t1 - s.t0);
-    V3 middle = s.p0;
-    if (pl.decisions[k].kind != TRAIN)
-      for (int i = 0; i < 3; ++i) middle[i] = s.p0[i] + s.v0[i] * tau + 0.5 * s.acc[i] * tau * tau;
-    if (inside_solid(sc, s.p0, r) || inside_solid(sc, middle, r) || inside_solid(sc, s.p1, r)) return false;
+    const bool middle_inside =
+        pl.decisions[k].kind != TRAIN && inside_solid(sc, ballistic_p(s.p0, s.v0, s.acc, 0.5 * (s.t1 - s.t0)), r);
+    if (middle_inside || inside_solid(sc, s.p1, r)) return false;
   }
   return true;
 }

@@ -95,17 +95,6 @@ def _scene_operands(scene: Scene) -> tuple:
             scene.plane_offset, scene.gravity)
 
 
-def _ball_operands(params, shape: tuple[int, ...]) -> tuple:
-    """e, mu_t, radius, position, velocity of the balls, broadcast to ``shape`` and
-    flattened to one axis of balls."""
-
-    def flat(x, event):
-        return jnp.broadcast_to(x, shape + event).reshape((-1,) + event)
-
-    return (flat(params.e, ()), flat(params.mu_t, ()), flat(params.radius, ()), flat(params.position, (3,)),
-            flat(params.velocity, (3,)))
-
-
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """``estim._solver.plan`` on the native kernel, for balls of any batch shape: the
     discrete structure of each ball's solution and its segments, as values (no
@@ -121,7 +110,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     n = flat.e.shape[0]
     layout = layout_of({"params": flat}, 1)
     rows, _ = pack({"params": flat}, layout, (n,))
-    columns = np.array([leaf.start for leaf in layout.parts[0][2][:5]], dtype=np.int64)  # e, mu_t, radius, position, velocity
+    param_columns = np.array([leaf.start for leaf in layout.parts[0][2][:5]], dtype=np.int64)  # e, mu_t, radius, position, velocity
     S = max_segments
 
     def out(shape, dtype):
@@ -131,7 +120,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
               out((n, S), jnp.int32), out((n, S, 23), jnp.float64), out((n,), jnp.int32), out((n,), jnp.bool_))
     call = jax.ffi.ffi_call("estim_plan", shapes, vmap_method="expand_dims")
     kind, support, count, reason, face, numbers, n_segments, complete = call(
-        *_scene_operands(scene), rows, t_end, columns=columns)
+        *_scene_operands(scene), rows, t_end, columns=param_columns)
     columns, start = {}, 0
     for name, size in _SEGMENT:
         columns[name] = numbers[..., start] if size == 1 else numbers[..., start:start + size]
@@ -199,6 +188,8 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
     ``checks`` the kernel also checks the inputs and the completion of every ball, and
     fails with the first message of ``messages`` that applies (in the order of
     ``estim._simulate``)."""
+    from ._simulate import flat_params
+
     _register()
     batch = params.batch_shape
     n = math.prod(batch)
@@ -207,15 +198,15 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
               jax.ShapeDtypeStruct((n, layout.n_integers), jnp.int32))
     call = jax.ffi.ffi_call("estim_trajectory", shapes, vmap_method="expand_dims")
 
-    def one_or_each(x, event):  # (what the checks read: no copy of a value shared by all balls)
-        return x.reshape((1,) + event) if x.shape == event else flat(x, event)
+    each = flat_params(params)
 
-    def flat(x, event):
-        return jnp.broadcast_to(x, batch + event).reshape((n,) + event)
+    def one_or_each(x, flat, event):  # (what the checks read: no copy of a value shared by all balls)
+        return x.reshape((1,) + event) if x.shape == event else flat
 
-    mass = jnp.zeros((0,)) if params.mass is None else one_or_each(params.mass, ())
-    return call(*_scene_operands(scene), *_ball_operands(params, batch), mass,
-                one_or_each(params.drag_coefficient, ()), one_or_each(params.spin, (3,)), t_end, ts,
+    mass = jnp.zeros((0,)) if params.mass is None else one_or_each(params.mass, each.mass, ())
+    return call(*_scene_operands(scene), each.e, each.mu_t, each.radius, each.position, each.velocity, mass,
+                one_or_each(params.drag_coefficient, each.drag_coefficient, ()), one_or_each(params.spin, each.spin, (3,)),
+                t_end, ts,
                 max_segments=np.int64(max_segments), max_events=np.int64(max_events), checks=bool(checks),
                 fields=_field_columns(layout), messages="\n".join(messages))
 

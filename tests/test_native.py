@@ -159,7 +159,7 @@ def test_a_large_batch_runs_in_parallel_with_the_same_results(stairs):
     which thread or batch it ran in (bit for bit)."""
     params = flat_params(balls_in(stairs, 1500, seed=3))
     n = params.e.shape[0]
-    assert n > 256  # (the kernels split batches of at least 128 and 512 balls)
+    assert n > 256  # (the kernels share a batch among threads in blocks of 64 balls)
     ts = np.linspace(0.0, 2.0, 5)
     whole = estim.simulate(stairs, params, 2.0, ts=ts, throw=False)
     plans = _native.plan(stairs, params, 2.0, 48)
