@@ -178,18 +178,24 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     grad_all = jax.jit(jax.jacfwd(lambda theta: final_x(theta, None)))
     gradient_all_us = _median_us(grad_all, theta, repeats)
 
-    # Batch: `batch` golf balls, e ~ U[0.3, 0.95], same release.
+    # Batch: `batch` golf balls, e ~ U[0.3, 0.95], same release, simulated to t_end. The
+    # figure held against the target keeps what a batch of simulations is for, each ball's
+    # final state and completion (keep=()); the same batch keeping its event lists, and
+    # keeping every part (samples, events, dense solution: the rows a call writes grow
+    # from 60 bytes per ball to some 16 kB, and the call becomes bound by memory), is
+    # timed beside it (docs/pages/speed.md).
     rng = np.random.default_rng(seed)
     e_batch = rng.uniform(0.3, 0.95, size=batch)
     many = estim.Params(e_batch, SEED["mu_t"], golf.radius, golf.position, vel)
-    # throw=False: a ball that needs more than max_segments is counted, not raised.
-    forward_batch = jax.jit(lambda p: estim.simulate(scene, p, t_end, throw=False))
-    batch_us = _median_us(forward_batch, many, max(min(repeats, 20), 3), warmup=1)
-    incomplete = int(np.sum(~np.asarray(forward_batch(many).complete)))
-    # The same batch keeping only the final states (keep=()): the rest of the call is the
-    # dense solution, the samples and the event lists (docs/pages/speed.md).
-    final_batch = jax.jit(lambda p: estim.simulate(scene, p, t_end, throw=False, keep=()).final)
-    batch_final_us = _median_us(final_batch, many, max(min(repeats, 20), 3), warmup=1)
+    batch_us, row_bytes = {}, {}
+    for name, keep in (("final", ()), ("events", ("events",)), ("all", None)):
+        # throw=False: a ball that needs more than max_segments is counted, not raised.
+        call = jax.jit(lambda p, keep=keep: estim.simulate(scene, p, t_end, throw=False, keep=keep))
+        batch_us[name] = _median_us(call, many, max(min(repeats, 20), 3), warmup=1)
+        traj = call(many)
+        row_bytes[name] = traj.record.shape[-1] * traj.record.dtype.itemsize + traj.flags.shape[-1] * traj.flags.dtype.itemsize
+        if name == "final":
+            incomplete = int(np.sum(~np.asarray(traj.complete)))
 
     result = {
         "forward_us": forward_us,
@@ -203,9 +209,13 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         "first_call_parts_s": parts,
         "import_s": first["import_s"],
         "batch": batch,
-        "batch_us": batch_us,
-        "batch_final_us": batch_final_us,
-        "batch_balls_per_s": batch / (batch_us * 1e-6),
+        "batch_final_us": batch_us["final"],
+        "batch_events_us": batch_us["events"],
+        "batch_all_us": batch_us["all"],
+        "batch_balls_per_s": batch / (batch_us["final"] * 1e-6),
+        "batch_events_balls_per_s": batch / (batch_us["events"] * 1e-6),
+        "batch_all_balls_per_s": batch / (batch_us["all"] * 1e-6),
+        "batch_row_bytes": row_bytes,
         "batch_incomplete": incomplete,
         "repeats": repeats,
     }
@@ -249,7 +259,7 @@ def format_speed(r: dict) -> str:
         row("forward, 3 balls (us/call, jit)", f"{r['forward_us']:.1f}", "forward_us"),
         row("gradient, jacfwd, keep=() (us, jit)", f"{r['gradient_us']:.1f}", "gradient_us"),
         row("first call, fresh process (s)", f"{r['first_call_s']:.3f}", "first_call_s"),
-        row(f"batch {r['batch']} golf (balls/s)", f"{r['batch_balls_per_s']:.3g}", "batch_balls_per_s"),
+        row(f"batch {r['batch']} golf, final states (balls/s)", f"{r['batch_balls_per_s']:.3g}", "batch_balls_per_s"),
         "",
         f"first call with the persistent compilation cache warm: {r['first_call_cached_s']:.3f} s",
         "first call under jit, by stages (fresh process): "
@@ -258,9 +268,13 @@ def format_speed(r: dict) -> str:
         f"{r['forward_floor_us']:.1f} us/call",
         f"forward without jit (estim.simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
         f"gradient keeping every part (keep=None): {r['gradient_all_us']:.1f} us/call",
-        f"batch of {r['batch']}: {r['batch_us']:.1f} us/call; keeping only the final states (keep=()): "
-        f"{r['batch_final_us']:.1f} us/call, {r['batch'] / (r['batch_final_us'] * 1e-6):.3g} balls/s "
-        f"({r['batch_incomplete']} balls incomplete within max_segments); import estim: {r['import_s']:.2f} s",
+        f"batch of {r['batch']}, final states (keep=()): {r['batch_final_us']:.0f} us/call, "
+        f"{r['batch_row_bytes']['final']} bytes per ball ({r['batch_incomplete']} balls incomplete within max_segments); "
+        f"keeping the events (keep=('events',)): {r['batch_events_us']:.0f} us/call, "
+        f"{r['batch_events_balls_per_s']:.3g} balls/s, {r['batch_row_bytes']['events']} bytes per ball; "
+        f"keeping every part (the default): {r['batch_all_us']:.0f} us/call, {r['batch_all_balls_per_s']:.3g} balls/s, "
+        f"{r['batch_row_bytes']['all']} bytes per ball",
+        f"import estim: {r['import_s']:.2f} s",
         "gradient d(golf final x)/d(e, mu_t, vx0) = "
         + ", ".join(f"{v:.8f}" for v in r["gradient"].values()),
         f"machine: {r['machine']['cpu_count']} CPUs ({r['machine'].get('cpus_used', r['machine']['cpu_count'])} used), "

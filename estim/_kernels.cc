@@ -22,6 +22,7 @@
 #include <Python.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -35,6 +36,14 @@
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
+
+// Builds of a hot loop for several instruction sets, chosen at load time (GCC and Clang
+// on x86-64 with glibc's ifunc; elsewhere the one baseline build).
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__)) && defined(__linux__)
+#define ESTIM_TARGET_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define ESTIM_TARGET_CLONES
+#endif
 
 namespace {
 
@@ -104,6 +113,14 @@ struct Scene {
   double gravity;
 };
 
+// A broad phase for first_contact, exact: a face's contact point lies within
+// ON_FACE_TOL of its solid's box grown by r along every axis, so the path cannot touch
+// a solid's faces before it enters that box grown by BROAD_MARGIN more (a margin far
+// above ON_FACE_TOL and the rounding of a contact time). For each axis, the earliest time
+// the coordinate reaches the box's interval is a lower bound; the latest over the axes is
+// the solid's bound.
+constexpr double BROAD_MARGIN = 1e-6;
+
 struct Faces {
   const Scene* s = nullptr;
   double radius = 0.0;
@@ -113,35 +130,67 @@ struct Faces {
   // solid); empty when a scene lists them otherwise, and then no broad phase is used.
   std::vector<int> first;
   std::vector<double> nx, ny, nz;  // the faces' normals, one array per axis
+  std::vector<double> reach_lo[3], reach_hi[3];  // the solids' boxes grown for reach_bounds
 
-  // The table for a ball of radius r (reusing the buffers of the last ball).
+  // The table for a ball of radius r, rebuilt only as far as the scene's buffers or the
+  // radius differ from the last ball's (the balls of a call share a scene, and mostly
+  // their radius).
   void reset(const Scene* scene, double r) {
-    const int F = scene->n_faces;
-    if (scene->row != (s ? s->row : nullptr) || static_cast<int>(order.size()) != F) {
-      order.resize(F);
-      for (int f = 0; f < F; ++f) order[f] = scene->rank[f] * F + f;
-      first.assign(scene->n_solids + 1, F);
-      bool grouped = true;
-      for (int f = 0, b = 0; f < F && grouped; ++f) {  // b: the next solid to start
-        const double solid = scene->row[f * ROW + SOLID];
-        grouped = solid >= b - 1 && solid < scene->n_solids;
-        for (; grouped && b <= solid; ++b) first[b] = f;
-      }
-      if (!grouped) first.clear();
-      nx.resize(F);
-      ny.resize(F);
-      nz.resize(F);
-      for (int f = 0; f < F; ++f) {
-        nx[f] = scene->row[f * ROW + NORMAL];
-        ny[f] = scene->row[f * ROW + NORMAL + 1];
-        nz[f] = scene->row[f * ROW + NORMAL + 2];
-      }
-    }
+    const std::array<const void*, 6> key{scene->row, scene->growth, scene->box_lo, scene->box_hi, scene->centre,
+                                         scene->half};
     s = scene;
+    if (key != built_from) {
+      build(*scene);
+      built_from = key;
+      sized = false;
+    }
+    if (sized && radius == r) return;
     radius = r;
+    const int F = scene->n_faces;
     offset.resize(F);
     for (int f = 0; f < F; ++f) offset[f] = scene->row[f * ROW + OFFSET] + radius * scene->growth[f];
+    for (int i = 0; i < 3; ++i) {
+      // (Padded to a multiple of 8 solids, so that reach_bounds runs whole vectors: the
+      // padding's bounds are computed and never read.)
+      reach_lo[i].assign((scene->n_solids + 7) / 8 * 8, 0.0);
+      reach_hi[i].assign((scene->n_solids + 7) / 8 * 8, 0.0);
+      for (int b = 0; b < scene->n_solids; ++b) {
+        reach_lo[i][b] = lo(b, i) - BROAD_MARGIN;
+        reach_hi[i][b] = hi(b, i) + BROAD_MARGIN;
+      }
+    }
+    sized = true;
   }
+  // Forgets the scene: a later call may bring another scene in the same buffers.
+  void forget() { built_from = {}; }
+
+ private:
+  std::array<const void*, 6> built_from{};
+  bool sized = false;
+
+  void build(const Scene& scene) {
+    const int F = scene.n_faces;
+    order.resize(F);
+    for (int f = 0; f < F; ++f) order[f] = scene.rank[f] * F + f;
+    first.assign(scene.n_solids + 1, F);
+    bool grouped = true;
+    for (int f = 0, b = 0; f < F && grouped; ++f) {  // b: the next solid to start
+      const double solid = scene.row[f * ROW + SOLID];
+      grouped = solid >= b - 1 && solid < scene.n_solids;
+      for (; grouped && b <= solid; ++b) first[b] = f;
+    }
+    if (!grouped) first.clear();
+    nx.resize(F);
+    ny.resize(F);
+    nz.resize(F);
+    for (int f = 0; f < F; ++f) {
+      nx[f] = scene.row[f * ROW + NORMAL];
+      ny[f] = scene.row[f * ROW + NORMAL + 1];
+      nz[f] = scene.row[f * ROW + NORMAL + 2];
+    }
+  }
+
+ public:
   const double* row(int f) const { return s->row + f * ROW; }
   V3 normal(int f) const { return load3(row(f) + NORMAL); }
   double lo(int b, int i) const { return s->box_lo[b * 3 + i] - radius; }
@@ -185,25 +234,53 @@ bool on_face(V3 q, const double* centre, const double* half, double radius) {
   return excess <= radius + ON_FACE_TOL;
 }
 
-// A broad phase for first_contact, exact: a face's contact point lies within
-// ON_FACE_TOL of its solid's box grown by r along every axis, so the path cannot touch
-// a solid's faces before it enters that box grown by BROAD_MARGIN more (a margin far
-// above ON_FACE_TOL and the rounding of a contact time). For each axis, the earliest time
-// the coordinate reaches the box's interval is a lower bound; the latest over the axes is
-// the solid's bound.
-constexpr double BROAD_MARGIN = 1e-6;
-
-double reach_bound(const Faces& fc, int b, V3 p, V3 v, V3 a) {
-  double bound = 0.0;
-  for (int i = 0; i < 3 && bound < kInf; ++i) {
-    const double lo = fc.lo(b, i) - BROAD_MARGIN, hi = fc.hi(b, i) + BROAD_MARGIN;
-    double t = 0.0;
-    if (p[i] < lo) t = entering_time(lo - p[i], -v[i], -a[i]);
-    else if (p[i] > hi) t = entering_time(p[i] - hi, v[i], a[i]);
-    else if (!(p[i] >= lo && p[i] <= hi)) t = kInf;  // NaN: nothing is entered
-    bound = t > bound ? t : bound;
+// Lower bounds on when the path reaches each of n solids' boxes (grown): bound[b], the
+// latest over the axes of the earliest time the coordinate reaches the box's interval.
+// Along an axis without acceleration (x and y in flight) that time is a division; the
+// loops over solids vectorise.
+ESTIM_TARGET_CLONES
+void reach_bounds(const Faces& fc, int n, V3 p, V3 v, V3 a, double* bound) {
+  for (int b = 0; b < n; ++b) bound[b] = 0.0;
+  for (int i = 0; i < 3; ++i) {
+    const double *lo = fc.reach_lo[i].data(), *hi = fc.reach_hi[i].data();
+    const double q = p[i], w = v[i], pull = a[i];
+    if (pull != 0) {
+      for (int b = 0; b < n; ++b) {
+        const bool below = q < lo[b], above = q > hi[b];
+        const double t = (below | above) ? entering_time(below ? lo[b] - q : q - hi[b], below ? -w : w, below ? -pull : pull)
+                                         : (q >= lo[b] ? 0.0 : kInf);  // (inside; NaN: never)
+        bound[b] = bound[b] > t ? bound[b] : t;
+      }
+      continue;
+    }
+    for (int b = 0; b < n; ++b) {
+      const bool below = q < lo[b], above = q > hi[b];
+      const double gap = below ? lo[b] - q : q - hi[b], toward = below ? w : -w;
+      const double t = (below | above) ? (toward > 0 ? gap / (toward > 0 ? toward : 1.0) : kInf)
+                                       : (q >= lo[b] ? 0.0 : kInf);  // (inside; NaN: never)
+      bound[b] = bound[b] > t ? bound[b] : t;
+    }
   }
-  return bound;
+}
+
+// The entering time of each of n faces (normals nx, ny, nz; plane offsets), inf for the
+// face `exclude`: the loop the contact search spends most of its time in. The compiler
+// vectorises it, and builds it for AVX-512 and AVX2 as well as for the baseline x86-64
+// (function multiversioning: the CPU picks at load time). Contraction to FMA is off
+// (setup.py), so every version computes the same bits.
+ESTIM_TARGET_CLONES
+void face_times(const double* nx, const double* ny, const double* nz, const double* offset, int n, int exclude,
+                V3 p, V3 v, V3 a, double* times) {
+  const double p0 = p[0], p1 = p[1], p2 = p[2], v0 = v[0], v1 = v[1], v2 = v[2], a0 = a[0], a1 = a[1], a2 = a[2];
+  for (int f = 0; f < n; ++f) {
+    const double g0 = ((nx[f] * p0 + ny[f] * p1) + nz[f] * p2) - offset[f];
+    const double g1 = (nx[f] * v0 + ny[f] * v1) + nz[f] * v2;
+    const double g2 = (nx[f] * a0 + ny[f] * a1) + nz[f] * a2;
+    // (Away from the plane and not approaching it: entering_time is inf.)
+    const bool skip = ((g0 > POSITION_TOL) & (g1 >= 0) & (g2 >= 0)) | (f == exclude);
+    const double t = entering_time(g0, g1, g2);
+    times[f] = skip ? kInf : t;
+  }
 }
 
 struct Candidate {
@@ -218,36 +295,33 @@ struct Candidate {
 // that of testing every face, the blocked faces and the ties included.
 struct ContactSearch {
   std::vector<Candidate> found, alive;
-  std::vector<std::pair<double, int>> solids;
-  std::vector<double> time;  // per face
+  std::vector<double> bound;  // per solid
+  std::vector<double> time;   // per face
 
   std::pair<double, int> operator()(const Faces& fc, V3 p, V3 v, V3 a, int exclude) {
     const int F = fc.s->n_faces;
     found.clear();
-    solids.clear();
     const bool broad = !fc.first.empty();
     const int groups = broad ? fc.s->n_solids : 1;
-    for (int b = 0; b < groups; ++b) solids.emplace_back(broad ? reach_bound(fc, b, p, v, a) : 0.0, b);
-    std::sort(solids.begin(), solids.end());
+    // Solids in the order of their bounds, ties to the lower index.
+    const int padded = static_cast<int>(fc.reach_lo[0].size());  // (solids, padded)
+    bound.resize(std::max(padded, 1));
+    if (broad) reach_bounds(fc, padded, p, v, a, bound.data());
+    else bound[0] = 0.0;
     time.resize(F);
-    const double p0 = p[0], p1 = p[1], p2 = p[2], v0 = v[0], v1 = v[1], v2 = v[2], a0 = a[0], a1 = a[1], a2 = a[2];
     std::pair<double, int> best{kInf, -1};
-    for (size_t k = 0; k < solids.size() && solids[k].first < kInf; ++k) {
-      const int b = solids[k].second;
+    for (int taken = 0; taken < groups; ++taken) {
+      int b = 0;
+      for (int c = 1; c < groups; ++c) b = bound[c] < bound[b] ? c : b;
+      // (A bound is NaN never: NaN positions enter nothing.)
+      if (!(bound[b] < kInf) || bound[b] > best.first + 1e-12) break;  // (and so are the solids after it)
+      bound[b] = kInf;  // (taken)
       const int lo = broad ? fc.first[b] : 0, hi = broad ? fc.first[b + 1] : F;
-      // Every face's entering time first, in a loop the compiler vectorises; then the
-      // few faces with a time, on the solid's box.
-      const double *nx = fc.nx.data(), *ny = fc.ny.data(), *nz = fc.nz.data(), *offset = fc.offset.data();
+      // Every face's entering time first (face_times), then the few faces with a time, on
+      // the solid's box.
       double* times = time.data();
-      for (int f = lo; f < hi; ++f) {
-        const double g0 = ((nx[f] * p0 + ny[f] * p1) + nz[f] * p2) - offset[f];
-        const double g1 = (nx[f] * v0 + ny[f] * v1) + nz[f] * v2;
-        const double g2 = (nx[f] * a0 + ny[f] * a1) + nz[f] * a2;
-        // (Away from the plane and not approaching it: entering_time is inf.)
-        const bool skip = ((g0 > POSITION_TOL) & (g1 >= 0) & (g2 >= 0)) | (f == exclude);
-        const double t = entering_time(g0, g1, g2);
-        times[f] = skip ? kInf : t;
-      }
+      face_times(fc.nx.data() + lo, fc.ny.data() + lo, fc.nz.data() + lo, fc.offset.data() + lo, hi - lo,
+                 exclude - lo, p, v, a, times + lo);
       for (int f = lo; f < hi; ++f) {
         const double t = times[f];
         if (!std::isfinite(t)) continue;
@@ -256,7 +330,6 @@ struct ContactSearch {
           found.push_back(Candidate{t, fc.order[f], f});
       }
       best = resolve(fc, p, v, a);
-      if (k + 1 < solids.size() && solids[k + 1].first > best.first + 1e-12) break;
     }
     return best;
   }
@@ -264,17 +337,19 @@ struct ContactSearch {
   // The earliest candidate, ties to the lowest order, dropping up to three that are
   // blocked (the ball touches a lower-rank face bordering it without entering it).
   std::pair<double, int> resolve(const Faces& fc, V3 p, V3 v, V3 a) {
-    alive = found;
+    std::vector<Candidate>* list = &found;  // (copied to `alive` only to drop one)
     for (int rounds = 0;; ++rounds) {
+      const std::vector<Candidate>& c = *list;
       double t_min = kInf;
-      for (const Candidate& c : alive) t_min = jmin(t_min, c.tau);
+      for (const Candidate& x : c) t_min = jmin(t_min, x.tau);
       if (!std::isfinite(t_min)) return {t_min, -1};
       size_t pick = 0;
       int32_t best = std::numeric_limits<int32_t>::max();
-      for (size_t j = 0; j < alive.size(); ++j)
-        if (alive[j].tau <= t_min + 1e-12 && alive[j].order < best) best = alive[j].order, pick = j;
-      const int face = alive[pick].face;
+      for (size_t j = 0; j < c.size(); ++j)
+        if (c[j].tau <= t_min + 1e-12 && c[j].order < best) best = c[j].order, pick = j;
+      const int face = c[pick].face;
       if (rounds == 3 || !blocked(fc, p, v, a, face, t_min)) return {t_min, face};
+      if (list == &found) alive = found, list = &alive;
       alive.erase(alive.begin() + pick);
     }
   }
@@ -341,6 +416,7 @@ double train_reach(const Faces& fc, int face, V3 p, V3 u, double height) {
   double obstacle = kInf;
   for (int b = 0; b < fc.s->n_solids; ++b) {
     const bool overlap = (fc.lo(b, 2) < zeta + height - POSITION_TOL) && (fc.hi(b, 2) > zeta + POSITION_TOL);
+    if (!overlap || static_cast<double>(b) == solid) continue;  // (not hit: obstacle is left as it is)
     double enter = -kInf, leave = kInf;
     for (int i = 0; i < 2; ++i) {
       const double lo = fc.lo(b, i), hi = fc.hi(b, i);
@@ -581,7 +657,7 @@ void decide_end(const Faces& fc, const Ball& b, const Step& st, double t_end, Co
   const V3 a = v3(0.0, 0.0, -1.0) * fc.s->gravity;
   if (st.kind == TRAIN) {
     const Series s = series(st.v, fc.normal(support_face(st.support)), a);
-    const double duration = series_end(s, st.n, b.rates).t;
+    const double duration = s.period * geometric_sum(b.rates.by_e, st.n);  // series_end(s, st.n).t
     *reason = st.t + duration >= t_end ? END : (std::isfinite(st.n) ? BOUNCES : SETTLE);
     *face = -1;
     return;
@@ -710,8 +786,9 @@ struct Plan {
 };
 
 // The discrete structure of one ball's solution and its segments (estim._solver.plan).
+// Only the slots used are written: pad() fills the rest where they are read.
 void plan(const Faces& fc, const Ball& b, double t_end, int S, Plan* out, ContactSearch& search) {
-  out->decisions.assign(S, Decision{UNUSED, -1, 0.0, END, -1});
+  out->decisions.resize(S);
   out->segments.resize(S);
   Step st{0.0, b.position, b.velocity, FLIGHT, -1, 0.0};
   int k = 0;
@@ -726,27 +803,38 @@ void plan(const Faces& fc, const Ball& b, double t_end, int S, Plan* out, Contac
     ++k;
     done = d.reason == END;
   }
-  // Unused slots hold the final state, so that sampling past the last segment is exact.
-  const Segment last = out->segments[std::max(k - 1, 0)];
-  for (int i = k; i < S; ++i) {
-    Segment& f = out->segments[i];
+  out->n_segments = k;
+  out->complete = done;
+}
+
+// The unused slots of a plan as estim._solver.plan leaves them: unused decisions, and
+// segments that hold the final state.
+void pad(Plan* pl) {
+  const int S = static_cast<int>(pl->segments.size());
+  const Segment last = pl->segments[std::max(pl->n_segments - 1, 0)];
+  for (int i = pl->n_segments; i < S; ++i) {
+    pl->decisions[i] = Decision{UNUSED, -1, 0.0, END, -1};
+    Segment& f = pl->segments[i];
     f.t0 = f.t1 = last.t1;
     f.p0 = f.p1 = last.p1;
     f.v0 = f.v1 = f.v1_post = last.v1_post;
     f.acc = f.normal = kZero;
   }
-  out->n_segments = k;
-  out->complete = done;
 }
 
 // ---------------------------------------------------------------------------------------
 // estim._simulate: a ball inside a solid (deeper than 1 nm), and the planned path's check
 
-bool inside_solid(const Scene& sc, V3 p, double r) {
+bool inside_solid(const Faces& fc, V3 p, double r) {
+  const Scene& sc = *fc.s;
+  const double limit = r - INSIDE_TOL;
   for (int b = 0; b < sc.n_boxes; ++b) {
+    // (The depth is a sum of terms >= 0, or NaN: once a partial sum is not below the
+    // limit, neither is the depth, and the box is left.)
     double depth = 0.0;
-    for (int i = 0; i < 3; ++i) depth = depth + jmax(std::fabs(p[i] - sc.centre[b * 3 + i]) - sc.half[b * 3 + i], 0.0);
-    if (depth < r - INSIDE_TOL) return true;
+    int i = 0;
+    for (; i < 3 && depth < limit; ++i) depth = depth + jmax(std::fabs(p[i] - sc.centre[b * 3 + i]) - sc.half[b * 3 + i], 0.0);
+    if (i == 3 && depth < limit) return true;
   }
   for (int k = 0; k < sc.n_planes; ++k) {
     const double height = p[0] * sc.p_normal[k * 3] + p[1] * sc.p_normal[k * 3 + 1] + p[2] * sc.p_normal[k * 3 + 2];
@@ -757,13 +845,13 @@ bool inside_solid(const Scene& sc, V3 p, double r) {
 
 // (Each point once: a segment starts where the one before it ends, and a bounce series'
 // middle is taken at its start.)
-bool stays_outside(const Scene& sc, double r, const Plan& pl) {
-  if (pl.n_segments > 0 && inside_solid(sc, pl.segments[0].p0, r)) return false;
+bool stays_outside(const Faces& fc, double r, const Plan& pl) {
+  if (pl.n_segments > 0 && inside_solid(fc, pl.segments[0].p0, r)) return false;
   for (int k = 0; k < pl.n_segments; ++k) {
     const Segment& s = pl.segments[k];
     const bool middle_inside =
-        pl.decisions[k].kind != TRAIN && inside_solid(sc, ballistic_p(s.p0, s.v0, s.acc, 0.5 * (s.t1 - s.t0)), r);
-    if (middle_inside || inside_solid(sc, s.p1, r)) return false;
+        pl.decisions[k].kind != TRAIN && inside_solid(fc, ballistic_p(s.p0, s.v0, s.acc, 0.5 * (s.t1 - s.t0)), r);
+    if (middle_inside || inside_solid(fc, s.p1, r)) return false;
   }
   return true;
 }
@@ -773,10 +861,10 @@ bool stays_outside(const Scene& sc, double r, const Plan& pl) {
 
 // Position and velocity at time t (estim._trajectory.sample).
 void sample(const Plan& pl, const Rates& c, double g, double t, V3* p, V3* v) {
-  const int S = static_cast<int>(pl.segments.size());
+  // (Unused slots start at inf in estim._trajectory.sample: they never count.)
   int count = 0;
-  for (int k = 0; k < S; ++k) count += (pl.decisions[k].kind != UNUSED ? pl.segments[k].t0 : kInf) <= t;
-  const int k = static_cast<int>(clip_index(count - 1, S - 1));
+  for (int k = 0; k < pl.n_segments; ++k) count += pl.segments[k].t0 <= t;
+  const int k = count > 0 ? count - 1 : 0;
   const Segment& s = pl.segments[k];
   const double tau = t - s.t0;
   if (pl.decisions[k].kind == TRAIN) {
@@ -862,14 +950,16 @@ struct EventList {
 // The event list of one ball (estim._trajectory.list_events_used); returns the count of
 // events that happened (listed or not).
 double list_events(const Plan& pl, const Rates& c, double g, int max_events, EventList* out) {
-  const int S = static_cast<int>(pl.segments.size());
+  // (Only the used segments: an unused one takes no slot, so every slot below falls in
+  // a used segment.)
+  const int S = pl.n_segments;
   std::vector<double>&bounces = out->bounces, &ends = out->ends, &capped = out->capped;
-  bounces.assign(S, 0.0);
-  ends.assign(S, 0.0);
-  capped.assign(S, 0.0);
+  bounces.resize(S);
+  ends.resize(S);
+  capped.resize(S);
   double total = 0.0;
   for (int k = 0; k < S; ++k) {
-    if (k < pl.n_segments) listed(pl.segments[k], pl.decisions[k], c, g, max_events, &bounces[k], &capped[k]);
+    listed(pl.segments[k], pl.decisions[k], c, g, max_events, &bounces[k], &capped[k]);
     total = total + capped[k];
     ends[k] = total;
   }
@@ -915,7 +1005,7 @@ struct Workspace {
 
 Workspace& workspace() {
   static thread_local Workspace ws;
-  ws.faces.s = nullptr;
+  ws.faces.forget();
   return ws;
 }
 
@@ -1102,6 +1192,7 @@ ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::Buffer
       const Ball b = bb.ball(outer, o, i);
       ws.faces.reset(&sc, b.radius);
       plan(ws.faces, b, at(outer, t_end, o)[0], static_cast<int>(S), &pl, ws.search);
+      pad(&pl);
       for (int64_t k = 0; k < S; ++k) {
         const Decision& d = pl.decisions[k];
         const int64_t slot = w * S + k;
@@ -1121,7 +1212,7 @@ ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::Buffer
 
 // The inputs of one ball against the checks of estim._simulate._INPUT_CHECKS: 0 if all
 // pass, else 1 + the index of the first that fails.
-int input_code(const Scene& sc, const Ball& b, bool has_mass, double mass, double drag, V3 spin, double t_end,
+int input_code(const Faces& fc, const Ball& b, bool has_mass, double mass, double drag, V3 spin, double t_end,
                const double* ts, int64_t T) {
   const bool bad[] = {
       !(b.e >= 0 && b.e <= 1),
@@ -1138,7 +1229,7 @@ int input_code(const Scene& sc, const Ball& b, bool has_mass, double mass, doubl
   if (!(std::isfinite(t_end) && t_end > 0)) return 9;
   for (int64_t j = 0; j < T; ++j)
     if (!(std::isfinite(ts[j]) && ts[j] >= 0 && ts[j] <= t_end)) return 10;
-  if (inside_solid(sc, b.position, b.radius)) return 11;
+  if (inside_solid(fc, b.position, b.radius)) return 11;
   return 0;
 }
 
@@ -1155,7 +1246,7 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
   auto put_int = [&](Field f, int64_t k, int32_t x) { ints[fields[f] + k] = x; };
   ws.faces.reset(&sc, b.radius);
   plan(ws.faces, b, te, S, &pl, ws.search);
-  const bool complete = pl.complete && stays_outside(sc, b.radius, pl);
+  const bool complete = pl.complete && stays_outside(ws.faces, b.radius, pl);
   const Segment& last_seg = pl.segments[std::max(pl.n_segments - 1, 0)];
   put(FINAL_T, 0, te);
   put3(FINAL_POSITION, 0, last_seg.p1);
@@ -1169,12 +1260,20 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
       put3(VELOCITY, j, v);
     }
   }
+  // (Slots past the last used one are written field by field, as runs of one value.)
+  auto fill = [&](Field f, int64_t from, int64_t to, double x) { std::fill(num + fields[f] + from, num + fields[f] + to, x); };
+  auto fill3 = [&](Field f, int64_t from, int64_t to, V3 x) {
+    for (int64_t k = from; k < to; ++k) put3(f, k, x);
+  };
+  auto fill_int = [&](Field f, int64_t from, int64_t to, int32_t x) {
+    std::fill(ints + fields[f] + from, ints + fields[f] + to, x);
+  };
   if (fields[EVENT_T] >= 0) {
     const double total = list_events(pl, b.rates, g, E, &ws.events);
     const std::vector<Event>& events = ws.events.events;
-    for (int j = 0; j < E; ++j) {
-      const bool used = j < static_cast<int>(events.size());
-      const Event ev = used ? events[j] : Event{kInf, kZero, kZero, kZero, -1, -1};
+    const int n = static_cast<int>(std::min<size_t>(events.size(), E));
+    for (int j = 0; j < n; ++j) {
+      const Event& ev = events[j];
       put(EVENT_T, j, ev.t);
       put3(EVENT_POSITION, j, ev.position);
       put3(EVENT_PRE, j, ev.pre);
@@ -1182,11 +1281,17 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
       put_int(EVENT_FACE, j, ev.face);
       put_int(EVENT_KIND, j, ev.kind);
     }
+    // Unused slots: t = inf, zero vectors, face and kind -1 (estim._trajectory).
+    fill(EVENT_T, n, E, kInf);
+    for (Field f : {EVENT_POSITION, EVENT_PRE, EVENT_POST}) fill(f, 3 * n, 3 * E, 0.0);
+    fill_int(EVENT_FACE, n, E, -1);
+    fill_int(EVENT_KIND, n, E, -1);
     put_int(EVENT_COUNT, 0, static_cast<int32_t>(jmin(total, E)));
     put_int(EVENT_TRUNCATED, 0, total > E);
   }
   if (fields[SEG_T0] >= 0) {
-    for (int k = 0; k < S; ++k) {
+    const int n = pl.n_segments;
+    for (int k = 0; k < n; ++k) {
       const Segment& s = pl.segments[k];
       const Decision& d = pl.decisions[k];
       put(SEG_T0, k, s.t0);
@@ -1204,6 +1309,17 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
       put_int(DEC_REASON, k, d.reason);
       put_int(DEC_FACE, k, d.face);
     }
+    // Unused slots as pad() leaves them: the final state, held.
+    const Segment& last = pl.segments[std::max(n - 1, 0)];
+    for (Field f : {SEG_T0, SEG_T1}) fill(f, n, S, last.t1);
+    for (Field f : {SEG_P0, SEG_P1}) fill3(f, n, S, last.p1);
+    for (Field f : {SEG_V0, SEG_V1, SEG_V1_POST}) fill3(f, n, S, last.v1_post);
+    for (Field f : {SEG_ACC, SEG_NORMAL}) fill(f, 3 * n, 3 * S, 0.0);
+    fill_int(DEC_KIND, n, S, UNUSED);
+    fill_int(DEC_SUPPORT, n, S, -1);
+    fill(DEC_N, n, S, 0.0);
+    fill_int(DEC_REASON, n, S, END);
+    fill_int(DEC_FACE, n, S, -1);
     put(SOL_E, 0, b.e);
     put(SOL_MU_T, 0, b.mu_t);
   }
@@ -1258,7 +1374,7 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::
         const double m = has_mass ? at(outer, mass, o)[n_mass == N ? i : 0] : 1.0;
         const double cd = at(outer, drag, o)[n_drag == N ? i : 0];
         const V3 spin_i = load3(at(outer, spin, o) + 3 * (n_spin == N ? i : 0));
-        const int code = input_code(sc, b, has_mass, m, cd, spin_i, te, times, T);
+        const int code = input_code(ws.faces, b, has_mass, m, cd, spin_i, te, times, T);  // (faces: this ball's)
         codes[w] = code > 0 ? code : complete_code;
       }
     }

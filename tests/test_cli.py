@@ -213,10 +213,21 @@ def test_restrict_cpus_fresh_process():
 def test_bench_speed_json(capsys):
     assert main(["bench", "speed", "--json", "--batch", "100", "--repeats", "3"]) == 0
     out = json.loads(capsys.readouterr().out)
-    for key in ("forward_us", "gradient_us", "gradient_all_us", "first_call_s", "batch_us", "batch_final_us",
-                "batch_balls_per_s", "targets", "machine"):
+    for key in ("forward_us", "gradient_us", "gradient_all_us", "first_call_s", "batch_final_us", "batch_events_us",
+                "batch_all_us", "batch_balls_per_s", "batch_all_balls_per_s", "targets", "machine"):
         assert key in out
     assert set(out["targets"]) == {"forward_us", "gradient_us", "first_call_s", "batch_balls_per_s"}
+    assert out["batch_balls_per_s"] == pytest.approx(100 / (out["batch_final_us"] * 1e-6))
+    # Bytes per ball, counted from the parts (2 sample times, 64 event slots, 48 segments):
+    # the final state is 7 numbers and a flag; the events 64 x (t, position, velocity
+    # before and after) and 64 x (face, kind) + count + truncated; the dense solution
+    # 48 x 23 numbers, 48 x (kind, support, reason, face) and 48 bounce counts, e, mu_t.
+    final = 7 * 8 + 1 * 4
+    events = 64 * 10 * 8 + (64 * 2 + 2) * 4
+    samples = 2 * 6 * 8
+    solution = (48 * 23 + 48 + 2) * 8 + 48 * 4 * 4
+    assert out["batch_row_bytes"] == {"final": final, "events": final + events,
+                                      "all": final + events + samples + solution}
     # the floor computes nothing, so it costs less than the forward call it bounds
     assert 0 < out["forward_floor_us"] < out["forward_us"]
     parts = out["first_call_parts_s"]
