@@ -91,9 +91,9 @@ def simulate(
             solution, for ``Trajectory.evaluate``); default all three. A trajectory is
             stored packed (``estim.Trajectory``), so a jitted function that uses only part
             of it still computes all it keeps: keep only what you use (10,000 balls,
-            final states only: about 4 times faster). A derivative computes only what
-            it keeps too (``jax.jacfwd`` of the golf ball's final x: about 22 us with
-            ``keep=()``, 45 us with the default).
+            final states only: about 6 times faster). A derivative computes only what
+            it keeps too (``jax.jacfwd`` of the golf ball's final x: about 27 us with
+            ``keep=()``, 61 us with the default; docs/pages/speed.md).
 
     Returns:
         A :class:`Trajectory`.
