@@ -555,11 +555,13 @@ Start flight_start(const Series& s, double j, const Rates& c) {
   const double mu = c.mu;
   const double t = s.period * geometric_sum(c.by_e, j);
   const double jj = std::isfinite(t) ? j : 0.0;
-  const double k = (safe_power(mu, j) - safe_power(c.e2, j)) / c.gap;
-  const double l = (geometric_sum(c.by_e2mu, jj) - geometric_sum(c.by_e2e2, jj)) / c.gap;
-  const double g_emu = geometric_sum(c.by_emu, jj), g_ee = geometric_sum(c.by_ee, jj);
-  const double period2 = s.period * s.period;
   const double p_mu = safe_power(mu, j), p_e = safe_power(c.e, j);
+  const double g_emu = geometric_sum(c.by_emu, jj), g_ee = geometric_sum(c.by_ee, jj);
+  // (e2 is e unless e and mu nearly agree: then the same powers and sums, not again.)
+  const bool moved = c.e2 != c.e;
+  const double k = (p_mu - (moved ? safe_power(c.e2, j) : p_e)) / c.gap;
+  const double l = ((moved ? geometric_sum(c.by_e2mu, jj) : g_emu) - (moved ? geometric_sum(c.by_e2e2, jj) : g_ee)) / c.gap;
+  const double period2 = s.period * s.period;
   Start out;
   out.t = t;
   for (int i = 0; i < 3; ++i) {
@@ -1069,38 +1071,56 @@ const ffi::NativeType<T>* at(const Outer& outer, const ffi::Buffer<T>& b, int64_
   return b.typed_data() + outer.offset(b.dimensions(), o);
 }
 
+// The scene as two buffers (estim._native._scene_operands): its numbers and its integers,
+// each its arrays flattened one after the other, and the counts of its faces, solids,
+// boxes and planes (`counts`), which say where each array starts. (Two operands instead
+// of eleven: each operand, a constant of the program in a jitted call, costs the call a
+// little.)
 struct SceneBuffers {
-  ffi::Buffer<ffi::F64> row, growth;
-  ffi::Buffer<ffi::S32> rank, lower;
-  ffi::Buffer<ffi::F64> box_lo, box_hi, centre, half, p_normal, p_offset, gravity;
+  ffi::Buffer<ffi::F64> numbers;
+  ffi::Buffer<ffi::S32> integers;
+  ffi::Span<const int64_t> counts;  // faces, solids, boxes, planes
+
+  int64_t faces() const { return counts[0]; }
+  int64_t solids() const { return counts[1]; }
+  int64_t boxes() const { return counts[2]; }
+  int64_t planes() const { return counts[3]; }
+  // row, growth, box_lo, box_hi, centre, half, plane normals, plane offsets, gravity
+  int64_t n_numbers() const { return faces() * (ROW + 1) + solids() * 6 + boxes() * 6 + planes() * 4 + 1; }
+  int64_t n_integers() const { return faces() * (1 + LOWER); }  // rank, lower
 
   bool fit(const Outer& outer) const {
-    return outer.fits(row.dimensions(), 2) && outer.fits(growth.dimensions(), 1) &&
-           outer.fits(rank.dimensions(), 1) && outer.fits(lower.dimensions(), 2) &&
-           outer.fits(box_lo.dimensions(), 2) && outer.fits(box_hi.dimensions(), 2) &&
-           outer.fits(centre.dimensions(), 2) && outer.fits(half.dimensions(), 2) &&
-           outer.fits(p_normal.dimensions(), 2) && outer.fits(p_offset.dimensions(), 1) &&
-           outer.fits(gravity.dimensions(), 0);
+    if (counts.size() != 4) return false;
+    for (int64_t c : counts)
+      if (c < 0) return false;
+    const auto nd = numbers.dimensions(), id = integers.dimensions();
+    return outer.fits(nd, 1) && outer.fits(id, 1) && nd[nd.size() - 1] == n_numbers() &&
+           id[id.size() - 1] == n_integers();
   }
   Scene scene(const Outer& outer, int64_t o) const {
-    const auto last = [](const auto& b) { return b.dimensions()[b.dimensions().size() - 1]; };
-    const auto first_own = [&](const auto& b, int natural) { return b.dimensions()[b.dimensions().size() - natural]; };
     Scene s;
-    s.n_faces = static_cast<int>(last(growth));
-    s.n_solids = static_cast<int>(first_own(box_lo, 2));
-    s.n_boxes = static_cast<int>(first_own(centre, 2));
-    s.n_planes = static_cast<int>(last(p_offset));
-    s.row = at(outer, row, o);
-    s.growth = at(outer, growth, o);
-    s.rank = at(outer, rank, o);
-    s.lower = at(outer, lower, o);
-    s.box_lo = at(outer, box_lo, o);
-    s.box_hi = at(outer, box_hi, o);
-    s.centre = at(outer, centre, o);
-    s.half = at(outer, half, o);
-    s.p_normal = at(outer, p_normal, o);
-    s.p_offset = at(outer, p_offset, o);
-    s.gravity = at(outer, gravity, o)[0];
+    s.n_faces = static_cast<int>(faces());
+    s.n_solids = static_cast<int>(solids());
+    s.n_boxes = static_cast<int>(boxes());
+    s.n_planes = static_cast<int>(planes());
+    const double* x = at(outer, numbers, o);
+    const auto next = [&x](int64_t size) {
+      const double* start = x;
+      x += size;
+      return start;
+    };
+    s.row = next(faces() * ROW);
+    s.growth = next(faces());
+    s.box_lo = next(solids() * 3);
+    s.box_hi = next(solids() * 3);
+    s.centre = next(boxes() * 3);
+    s.half = next(boxes() * 3);
+    s.p_normal = next(planes() * 3);
+    s.p_offset = next(planes());
+    s.gravity = *next(1);
+    const int32_t* k = at(outer, integers, o);
+    s.rank = k;
+    s.lower = k + faces();
     return s;
   }
 };
@@ -1169,15 +1189,13 @@ void parallel_for(ffi::ThreadPool& pool, int64_t n, int64_t grain, Fn fn) {
 const ffi::Error kShapes = ffi::Error::InvalidArgument("estim: the native solver got inputs of unexpected shapes");
 
 // Plan every ball: decisions, segments, segment count and completion (estim._solver.Plan).
-ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::Buffer<ffi::F64> growth,
-                    ffi::Buffer<ffi::S32> rank, ffi::Buffer<ffi::S32> lower, ffi::Buffer<ffi::F64> box_lo,
-                    ffi::Buffer<ffi::F64> box_hi, ffi::Buffer<ffi::F64> centre, ffi::Buffer<ffi::F64> half,
-                    ffi::Buffer<ffi::F64> p_normal, ffi::Buffer<ffi::F64> p_offset, ffi::Buffer<ffi::F64> gravity,
+ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers, ffi::Buffer<ffi::S32> scene_integers,
                     ffi::Buffer<ffi::F64> balls, ffi::Buffer<ffi::F64> t_end, ffi::ResultBuffer<ffi::S32> kind, ffi::ResultBuffer<ffi::S32> support, ffi::ResultBuffer<ffi::F64> n,
                     ffi::ResultBuffer<ffi::S32> reason, ffi::ResultBuffer<ffi::S32> face,
                     ffi::ResultBuffer<ffi::F64> segments, ffi::ResultBuffer<ffi::S32> n_segments,
-                    ffi::ResultBuffer<ffi::PRED> complete, ffi::Span<const int64_t> columns) {
-  const SceneBuffers sb{row, growth, rank, lower, box_lo, box_hi, centre, half, p_normal, p_offset, gravity};
+                    ffi::ResultBuffer<ffi::PRED> complete, ffi::Span<const int64_t> counts,
+                    ffi::Span<const int64_t> columns) {
+  const SceneBuffers sb{scene_numbers, scene_integers, counts};
   const BallRows bb{balls, columns};
   const Outer outer(kind->dimensions(), 2);  // kind: (..., N, S)
   if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(t_end.dimensions(), 0)) return kShapes;
@@ -1329,17 +1347,15 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
 // Every ball's Trajectory rows, with the argument checks when asked: then the first
 // failing check over the balls (the smallest code, as estim._simulate orders them) is
 // returned as an error carrying its message (`messages`: one per line, in code order).
-ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::Buffer<ffi::F64> growth,
-                          ffi::Buffer<ffi::S32> rank, ffi::Buffer<ffi::S32> lower, ffi::Buffer<ffi::F64> box_lo,
-                          ffi::Buffer<ffi::F64> box_hi, ffi::Buffer<ffi::F64> centre, ffi::Buffer<ffi::F64> half,
-                          ffi::Buffer<ffi::F64> p_normal, ffi::Buffer<ffi::F64> p_offset,
-                          ffi::Buffer<ffi::F64> gravity, ffi::Buffer<ffi::F64> e, ffi::Buffer<ffi::F64> mu_t,
+ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers,
+                          ffi::Buffer<ffi::S32> scene_integers, ffi::Buffer<ffi::F64> e, ffi::Buffer<ffi::F64> mu_t,
                           ffi::Buffer<ffi::F64> radius, ffi::Buffer<ffi::F64> position,
                           ffi::Buffer<ffi::F64> velocity, ffi::Buffer<ffi::F64> mass, ffi::Buffer<ffi::F64> drag,
                           ffi::Buffer<ffi::F64> spin, ffi::Buffer<ffi::F64> t_end, ffi::Buffer<ffi::F64> ts,
                           ffi::ResultBuffer<ffi::F64> record, ffi::ResultBuffer<ffi::S32> flags, int64_t max_segments,
-                          int64_t max_events, bool checks, ffi::Span<const int64_t> fields, std::string_view messages) {
-  const SceneBuffers sb{row, growth, rank, lower, box_lo, box_hi, centre, half, p_normal, p_offset, gravity};
+                          int64_t max_events, bool checks, ffi::Span<const int64_t> fields, std::string_view messages,
+                          ffi::Span<const int64_t> counts) {
+  const SceneBuffers sb{scene_numbers, scene_integers, counts};
   const BallBuffers bb{e, mu_t, radius, position, velocity};
   const Outer outer(record->dimensions(), 2);  // record: (..., N, numbers)
   if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(mass.dimensions(), 1) || !outer.fits(drag.dimensions(), 1) ||
@@ -1393,22 +1409,13 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> row, ffi::
 
 }  // namespace
 
-// Both handlers' first arguments: XLA's thread pool, then the scene (in the order of
-// estim._native._scene_operands).
+// Both handlers' first arguments: XLA's thread pool, then the scene (estim._native.
+// _scene_operands; its `counts` attribute comes last).
 static auto scene_binding() {
   return ffi::Ffi::Bind()
       .Ctx<ffi::ThreadPool>()
-      .Arg<ffi::Buffer<ffi::F64>>()   // face rows
-      .Arg<ffi::Buffer<ffi::F64>>()   // growth
-      .Arg<ffi::Buffer<ffi::S32>>()   // rank
-      .Arg<ffi::Buffer<ffi::S32>>()   // lower
-      .Arg<ffi::Buffer<ffi::F64>>()   // box_lo
-      .Arg<ffi::Buffer<ffi::F64>>()   // box_hi
-      .Arg<ffi::Buffer<ffi::F64>>()   // box centres
-      .Arg<ffi::Buffer<ffi::F64>>()   // box half sizes
-      .Arg<ffi::Buffer<ffi::F64>>()   // plane normals
-      .Arg<ffi::Buffer<ffi::F64>>()   // plane offsets
-      .Arg<ffi::Buffer<ffi::F64>>();  // gravity
+      .Arg<ffi::Buffer<ffi::F64>>()   // the scene's numbers
+      .Arg<ffi::Buffer<ffi::S32>>();  // the scene's integers
 }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimPlan, PlanImpl,
@@ -1423,6 +1430,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimPlan, PlanImpl,
                                   .Ret<ffi::Buffer<ffi::F64>>()  // segments
                                   .Ret<ffi::Buffer<ffi::S32>>()  // n_segments
                                   .Ret<ffi::Buffer<ffi::PRED>>()  // complete
+                                  .Attr<ffi::Span<const int64_t>>("counts")    // the scene's faces, solids, boxes, planes
                                   .Attr<ffi::Span<const int64_t>>("columns"));  // of e, mu_t, radius, position, velocity
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimTrajectory, TrajectoryImpl,
@@ -1443,7 +1451,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimTrajectory, TrajectoryImpl,
                                   .Attr<int64_t>("max_events")
                                   .Attr<bool>("checks")
                                   .Attr<ffi::Span<const int64_t>>("fields")
-                                  .Attr<std::string_view>("messages"));
+                                  .Attr<std::string_view>("messages")
+                                  .Attr<ffi::Span<const int64_t>>("counts"));  // the scene's faces, solids, boxes, planes
 
 // A Python module whose `handlers()` gives the two handlers as capsules, for
 // jax.ffi.register_ffi_target.

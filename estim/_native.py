@@ -86,13 +86,20 @@ def _register() -> None:
         jax.ffi.register_ffi_target(name, capsule, platform="cpu")
 
 
-def _scene_operands(scene: Scene) -> tuple:
+def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
     """The scene as the kernels read it: the face table (``estim._contact.Faces``, for
-    radius 0: the kernels grow it by each ball's radius), the solids and gravity."""
+    radius 0: the kernels grow it by each ball's radius), the solids and gravity, as two
+    arrays (numbers, integers: each array flattened, one after the other, in the order of
+    the kernel's ``SceneBuffers``), and the counts of faces, solids, boxes and planes that
+    say where each begins (the kernel's ``counts`` attribute)."""
     faces = faces_for(scene, jnp.float64(0.0))
-    return (faces.row, faces.growth, faces.rank.astype(jnp.int32), faces.lower.astype(jnp.int32),
-            faces.box_lo, faces.box_hi, scene.box_centre, scene.box_half, scene.plane_normal,
-            scene.plane_offset, scene.gravity)
+    numbers = (faces.row, faces.growth, faces.box_lo, faces.box_hi, scene.box_centre, scene.box_half,
+               scene.plane_normal, scene.plane_offset, scene.gravity)
+    integers = (faces.rank, faces.lower)
+    counts = np.array([faces.growth.shape[0], faces.box_lo.shape[0], scene.box_centre.shape[0],
+                       scene.plane_offset.shape[0]], dtype=np.int64)
+    join = lambda xs, dtype: jnp.concatenate([jnp.ravel(x).astype(dtype) for x in xs])  # noqa: E731
+    return (join(numbers, jnp.float64), join(integers, jnp.int32)), counts
 
 
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
@@ -119,8 +126,9 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     shapes = (out((n, S), jnp.int32), out((n, S), jnp.int32), out((n, S), jnp.float64), out((n, S), jnp.int32),
               out((n, S), jnp.int32), out((n, S, 23), jnp.float64), out((n,), jnp.int32), out((n,), jnp.bool_))
     call = jax.ffi.ffi_call("estim_plan", shapes, vmap_method="expand_dims")
+    (scene_numbers, scene_integers), counts = _scene_operands(scene)
     kind, support, count, reason, face, numbers, n_segments, complete = call(
-        *_scene_operands(scene), rows, t_end, columns=param_columns)
+        scene_numbers, scene_integers, rows, t_end, counts=counts, columns=param_columns)
     columns, start = {}, 0
     for name, size in _SEGMENT:
         columns[name] = numbers[..., start] if size == 1 else numbers[..., start:start + size]
@@ -204,11 +212,12 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
         return x.reshape((1,) + event) if x.shape == event else flat
 
     mass = jnp.zeros((0,)) if params.mass is None else one_or_each(params.mass, each.mass, ())
-    return call(*_scene_operands(scene), each.e, each.mu_t, each.radius, each.position, each.velocity, mass,
+    (scene_numbers, scene_integers), counts = _scene_operands(scene)
+    return call(scene_numbers, scene_integers, each.e, each.mu_t, each.radius, each.position, each.velocity, mass,
                 one_or_each(params.drag_coefficient, each.drag_coefficient, ()), one_or_each(params.spin, each.spin, (3,)),
                 t_end, ts,
                 max_segments=np.int64(max_segments), max_events=np.int64(max_events), checks=bool(checks),
-                fields=_field_columns(layout), messages="\n".join(messages))
+                fields=_field_columns(layout), messages="\n".join(messages), counts=counts)
 
 
 @trajectory_rows.defjvp
