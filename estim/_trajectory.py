@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._contact import REST_SPEED, geometric_count, inner
 from ._record import Layout, layout_of, pack, unpack
@@ -110,23 +110,45 @@ class Trajectory(eqx.Module):
         solution: the dense solution; ``evaluate`` samples it at any time.
         gravity: the magnitude g of the scene's gravity (m/s^2).
 
-    Every attribute but ``ts`` and ``gravity`` is a view of two arrays, ``record`` (the
-    numbers of each ball in one row) and ``flags`` (its integers and flags), laid out by
-    the static ``layout`` (``estim._record``). A jitted function hands back every array of
-    its result as a buffer of its own, at about 1.5 us each on the CPU: packed, a
-    trajectory is 4 arrays instead of 32, and the seed's forward call takes about half the
-    time (docs/pages/speed.md). Build one with :meth:`Trajectory.pack`.
+    Every attribute is a view of three arrays: ``record`` (the numbers of each ball in one
+    row) and ``flags`` (its integers and flags), laid out by the static ``layout``
+    (``estim._record``), and ``clock`` (the sample times, then g). A jitted function hands
+    back every array of its result as a buffer of its own, at about 1.5 us each on the
+    CPU: packed, a trajectory is 3 arrays instead of 32, and the seed's forward call takes
+    about half the time (docs/pages/speed.md). Build one with :meth:`Trajectory.pack`, or
+    ``Trajectory(ts, record, flags, gravity, layout)`` from packed rows.
 
     ``traj[i]`` is the trajectory of the balls ``i`` selects (indexing the batch axes). A
     trajectory simulated with ``keep`` (:func:`estim.simulate`) has only what it kept:
     reading the samples, events or solution it left out raises ``ValueError``.
     """
 
-    ts: Float[Array, " times"]
+    clock: Float[Array, " times_and_g"]
     record: Float[Array, "*batch numbers"]
     flags: Int[Array, "*batch integers"]
-    gravity: Float[Array, ""]
     layout: Layout = eqx.field(static=True)
+
+    def __init__(self, ts: Float[ArrayLike, " times"], record, flags, gravity: Float[ArrayLike, ""], layout: Layout):
+        self.clock = jnp.concatenate([jnp.asarray(ts, jnp.float64), jnp.reshape(jnp.asarray(gravity, jnp.float64), (1,))])
+        self.record = record
+        self.flags = flags
+        self.layout = layout
+
+    def _clock(self, index):
+        c = self.clock
+        if isinstance(c, jax.Array) and not isinstance(c, jax.core.Tracer):
+            return jnp.asarray(np.asarray(c)[index])  # (a NumPy view, as for the rows in _part)
+        return c[index]  # traced: a free slice
+
+    @property
+    def ts(self) -> Float[Array, " times"]:
+        """The requested sample times."""
+        return self._clock((..., slice(None, -1)))
+
+    @property
+    def gravity(self) -> Float[Array, ""]:
+        """The magnitude g of the scene's gravity (m/s^2)."""
+        return self._clock((..., -1))
 
     @classmethod
     def pack(cls, ts, position, velocity, events: Events, final: State, complete, solution,
@@ -163,7 +185,7 @@ class Trajectory(eqx.Module):
         record, flags = self.record[index], self.flags[index]
         if record.ndim < 1 or record.shape[-1] != self.record.shape[-1]:
             raise IndexError(f"{index!r} indexes more than the batch axes {self.record.shape[:-1]}")
-        return Trajectory(ts=self.ts, record=record, flags=flags, gravity=self.gravity, layout=self.layout)
+        return eqx.tree_at(lambda tr: (tr.record, tr.flags), self, (record, flags))
 
     @property
     def position(self) -> Float[Array, "*batch times 3"]:

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import BATCH_ROUNDING, SEED_T_END, run, seed_arrays
+from conftest import BATCH_ROUNDING, G, SEED_T_END, run, seed_arrays
 
 import estim
 from estim._record import layout_of, pack, unpack
@@ -51,8 +51,16 @@ def test_pack_unpack_round_trip(batch):
 
 def test_trajectory_views_and_indexing(stairs):
     traj = run(stairs, *seed_arrays(stairs), SEED_T_END)  # the suite's padded batch
-    # ts, the two rows, gravity: what a jitted call hands back.
-    assert len(jax.tree.leaves(traj)) == 4
+    # The two rows and the clock (the sample times, then g): what a jitted call hands back.
+    assert len(jax.tree.leaves(traj)) == 3
+    np.testing.assert_array_equal(np.asarray(traj.ts), np.asarray(traj.clock)[:-1])
+    assert float(traj.gravity) == G and float(traj[1].gravity) == G
+    np.testing.assert_array_equal(np.asarray(traj[1].ts), np.asarray(traj.ts))
+    # Under vmap the clock gains the mapped axis, and so do ts and gravity.
+    golf = estim.Params.for_ball(stairs, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0.0, 0.0))
+    mapped = jax.vmap(lambda t: estim.simulate(stairs, golf, t, keep=()))(jnp.array([1.0, 2.0]))
+    np.testing.assert_array_equal(np.asarray(mapped.ts), [[0.0, 1.0], [0.0, 2.0]])
+    np.testing.assert_array_equal(np.asarray(mapped.gravity), [G, G])
     n = traj.record.shape[0]
     for i in (0, 1, n - 1):
         one = traj[i]
@@ -76,8 +84,8 @@ def test_trajectory_views_and_indexing(stairs):
 def test_jitted_simulate_returns_the_packed_arrays(stairs):
     golf = estim.Params.for_ball(stairs, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0, 0))
     out = jax.jit(lambda p: estim.simulate(stairs, p, 2.3))(golf)
-    assert [x.shape[-1:] for x in jax.tree.leaves(out)][:1] == [(2,)]  # ts
-    assert len(jax.tree.leaves(out)) == 4
+    assert [x.shape[-1:] for x in jax.tree.leaves(out)][:1] == [(3,)]  # the clock: ts, then g
+    assert len(jax.tree.leaves(out)) == 3
     eager = estim.simulate(stairs, golf, 2.3)
     for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(eager), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
