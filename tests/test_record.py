@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import BATCH_ROUNDING, G, SEED_T_END, run, seed_arrays
+from conftest import BATCH_ROUNDING, SEED_T_END, G, run, seed_arrays
 
 import estim
 from estim._record import layout_of, pack, unpack
