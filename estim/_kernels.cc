@@ -1125,17 +1125,30 @@ struct SceneBuffers {
   }
 };
 
+// The balls' parameters, each one per ball (N of them) or one for all (a field the
+// parameters do not batch, passed once instead of N times).
 struct BallBuffers {
   ffi::Buffer<ffi::F64> e, mu_t, radius, position, velocity;
+  int64_t N;
 
+  template <typename B>
+  static int64_t count(const B& b, int natural) {
+    return b.dimensions()[b.dimensions().size() - natural];
+  }
+  template <typename B>
+  bool fits(const Outer& outer, const B& b, int natural) const {
+    return outer.fits(b.dimensions(), natural) && (count(b, natural) == N || count(b, natural) == 1);
+  }
   bool fit(const Outer& outer) const {
-    return outer.fits(e.dimensions(), 1) && outer.fits(mu_t.dimensions(), 1) && outer.fits(radius.dimensions(), 1) &&
-           outer.fits(position.dimensions(), 2) && outer.fits(velocity.dimensions(), 2);
+    return fits(outer, e, 1) && fits(outer, mu_t, 1) && fits(outer, radius, 1) && fits(outer, position, 2) &&
+           fits(outer, velocity, 2);
   }
   Ball ball(const Outer& outer, int64_t o, int64_t i) const {
-    const double e_i = at(outer, e, o)[i], mu_i = at(outer, mu_t, o)[i];
-    return Ball{e_i, mu_i, at(outer, radius, o)[i], load3(at(outer, position, o) + 3 * i),
-                load3(at(outer, velocity, o) + 3 * i), Rates(e_i, mu_i)};
+    const auto of = [&](const ffi::Buffer<ffi::F64>& b, int natural) {
+      return at(outer, b, o) + (count(b, natural) == N ? i : 0) * (natural == 2 ? 3 : 1);
+    };
+    const double e_i = *of(e, 1), mu_i = *of(mu_t, 1);
+    return Ball{e_i, mu_i, *of(radius, 1), load3(of(position, 2)), load3(of(velocity, 2)), Rates(e_i, mu_i)};
   }
 };
 
@@ -1356,14 +1369,14 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numb
                           int64_t max_events, bool checks, ffi::Span<const int64_t> fields, std::string_view messages,
                           ffi::Span<const int64_t> counts) {
   const SceneBuffers sb{scene_numbers, scene_integers, counts};
-  const BallBuffers bb{e, mu_t, radius, position, velocity};
   const Outer outer(record->dimensions(), 2);  // record: (..., N, numbers)
+  const auto own = record->dimensions();
+  const int64_t N = own[own.size() - 2], n_numbers = own[own.size() - 1];
+  const BallBuffers bb{e, mu_t, radius, position, velocity, N};
   if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(mass.dimensions(), 1) || !outer.fits(drag.dimensions(), 1) ||
       !outer.fits(spin.dimensions(), 2) || !outer.fits(t_end.dimensions(), 0) || !outer.fits(ts.dimensions(), 1) ||
       fields.size() != N_FIELDS)
     return kShapes;
-  const auto own = record->dimensions();
-  const int64_t N = own[own.size() - 2], n_numbers = own[own.size() - 1];
   const int64_t n_integers = flags->dimensions()[flags->dimensions().size() - 1];
   const int64_t T = ts.dimensions()[ts.dimensions().size() - 1];
   // mass, drag and spin (read by the checks only) come one per ball or one for all; no

@@ -208,12 +208,14 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
 
     each = flat_params(params)
 
-    def one_or_each(x, flat, event):  # (what the checks read: no copy of a value shared by all balls)
+    def one_or_each(x, flat, event):  # (no copy per ball of a value shared by all balls)
         return x.reshape((1,) + event) if x.shape == event else flat
 
     mass = jnp.zeros((0,)) if params.mass is None else one_or_each(params.mass, each.mass, ())
     (scene_numbers, scene_integers), counts = _scene_operands(scene)
-    return call(scene_numbers, scene_integers, each.e, each.mu_t, each.radius, each.position, each.velocity, mass,
+    return call(scene_numbers, scene_integers, one_or_each(params.e, each.e, ()), one_or_each(params.mu_t, each.mu_t, ()),
+                one_or_each(params.radius, each.radius, ()), one_or_each(params.position, each.position, (3,)),
+                one_or_each(params.velocity, each.velocity, (3,)), mass,
                 one_or_each(params.drag_coefficient, each.drag_coefficient, ()), one_or_each(params.spin, each.spin, (3,)),
                 t_end, ts,
                 max_segments=np.int64(max_segments), max_events=np.int64(max_events), checks=bool(checks),
