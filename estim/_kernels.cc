@@ -1125,30 +1125,33 @@ struct SceneBuffers {
   }
 };
 
-// The balls' parameters, each one per ball (N of them) or one for all (a field the
-// parameters do not batch, passed once instead of N times).
+// Item i of a buffer that holds one item per ball (N of them) or one for all (a value the
+// parameters do not batch, passed once instead of N times); items of `natural` axes
+// (1: a number, 2: a 3-vector).
+template <typename B>
+int64_t items(const B& b, int natural) {
+  return b.dimensions()[b.dimensions().size() - natural];
+}
+const double* item(const Outer& outer, const ffi::Buffer<ffi::F64>& b, int natural, int64_t o, int64_t i, int64_t N) {
+  return at(outer, b, o) + (items(b, natural) == N ? i : 0) * (natural == 2 ? 3 : 1);
+}
+bool one_or_each(const Outer& outer, const ffi::Buffer<ffi::F64>& b, int natural, int64_t N) {
+  return outer.fits(b.dimensions(), natural) && (items(b, natural) == N || items(b, natural) == 1);
+}
+
+// The balls' parameters, each one per ball or one for all.
 struct BallBuffers {
   ffi::Buffer<ffi::F64> e, mu_t, radius, position, velocity;
   int64_t N;
 
-  template <typename B>
-  static int64_t count(const B& b, int natural) {
-    return b.dimensions()[b.dimensions().size() - natural];
-  }
-  template <typename B>
-  bool fits(const Outer& outer, const B& b, int natural) const {
-    return outer.fits(b.dimensions(), natural) && (count(b, natural) == N || count(b, natural) == 1);
-  }
   bool fit(const Outer& outer) const {
-    return fits(outer, e, 1) && fits(outer, mu_t, 1) && fits(outer, radius, 1) && fits(outer, position, 2) &&
-           fits(outer, velocity, 2);
+    return one_or_each(outer, e, 1, N) && one_or_each(outer, mu_t, 1, N) && one_or_each(outer, radius, 1, N) &&
+           one_or_each(outer, position, 2, N) && one_or_each(outer, velocity, 2, N);
   }
   Ball ball(const Outer& outer, int64_t o, int64_t i) const {
-    const auto of = [&](const ffi::Buffer<ffi::F64>& b, int natural) {
-      return at(outer, b, o) + (count(b, natural) == N ? i : 0) * (natural == 2 ? 3 : 1);
-    };
-    const double e_i = *of(e, 1), mu_i = *of(mu_t, 1);
-    return Ball{e_i, mu_i, *of(radius, 1), load3(of(position, 2)), load3(of(velocity, 2)), Rates(e_i, mu_i)};
+    const double e_i = *item(outer, e, 1, o, i, N), mu_i = *item(outer, mu_t, 1, o, i, N);
+    return Ball{e_i, mu_i, *item(outer, radius, 1, o, i, N), load3(item(outer, position, 2, o, i, N)),
+                load3(item(outer, velocity, 2, o, i, N)), Rates(e_i, mu_i)};
   }
 };
 
@@ -1373,19 +1376,15 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numb
   const auto own = record->dimensions();
   const int64_t N = own[own.size() - 2], n_numbers = own[own.size() - 1];
   const BallBuffers bb{e, mu_t, radius, position, velocity, N};
-  if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(mass.dimensions(), 1) || !outer.fits(drag.dimensions(), 1) ||
-      !outer.fits(spin.dimensions(), 2) || !outer.fits(t_end.dimensions(), 0) || !outer.fits(ts.dimensions(), 1) ||
-      fields.size() != N_FIELDS)
+  // mass, drag and spin (read by the checks only) come one per ball or one for all; no
+  // mass at all where the parameters have none.
+  const bool mass_shaped = outer.fits(mass.dimensions(), 1), has_mass = mass_shaped && items(mass, 1) > 0;
+  if (!sb.fit(outer) || !bb.fit(outer) || !mass_shaped || (has_mass && !one_or_each(outer, mass, 1, N)) ||
+      !one_or_each(outer, drag, 1, N) || !one_or_each(outer, spin, 2, N) || !outer.fits(t_end.dimensions(), 0) ||
+      !outer.fits(ts.dimensions(), 1) || fields.size() != N_FIELDS)
     return kShapes;
   const int64_t n_integers = flags->dimensions()[flags->dimensions().size() - 1];
   const int64_t T = ts.dimensions()[ts.dimensions().size() - 1];
-  // mass, drag and spin (read by the checks only) come one per ball or one for all; no
-  // mass at all where the parameters have none.
-  const auto count_of = [](const auto& b, int natural) { return b.dimensions()[b.dimensions().size() - natural]; };
-  const int64_t n_mass = count_of(mass, 1), n_drag = count_of(drag, 1), n_spin = count_of(spin, 2);
-  if (!(n_mass == 0 || n_mass == 1 || n_mass == N) || !(n_drag == 1 || n_drag == N) || !(n_spin == 1 || n_spin == N))
-    return kShapes;
-  const bool has_mass = n_mass > 0;
   std::vector<int> codes(checks ? outer.count * N : 0, 0);
 
   parallel_for(pool, outer.count * N, 64, [&](int64_t first, int64_t last) {
@@ -1400,9 +1399,9 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numb
                                                 static_cast<int>(max_events), fields, record->typed_data() + w * n_numbers,
                                                 flags->typed_data() + w * n_integers, ws);
       if (checks) {
-        const double m = has_mass ? at(outer, mass, o)[n_mass == N ? i : 0] : 1.0;
-        const double cd = at(outer, drag, o)[n_drag == N ? i : 0];
-        const V3 spin_i = load3(at(outer, spin, o) + 3 * (n_spin == N ? i : 0));
+        const double m = has_mass ? *item(outer, mass, 1, o, i, N) : 1.0;
+        const double cd = *item(outer, drag, 1, o, i, N);
+        const V3 spin_i = load3(item(outer, spin, 2, o, i, N));
         const int code = input_code(ws.faces, b, has_mass, m, cd, spin_i, te, times, T);  // (faces: this ball's)
         codes[w] = code > 0 ? code : complete_code;
       }
