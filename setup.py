@@ -1,4 +1,4 @@
-"""Builds estim's native kernels (estim/_kernels.cc, XLA FFI handlers) against the XLA FFI
+"""Builds estim's native kernels (estim/forward/_kernels.cc, XLA FFI handlers) against the XLA FFI
 headers that jaxlib ships. Everything else about the package is in pyproject.toml."""
 
 import os
@@ -9,8 +9,8 @@ from setuptools import Extension, setup
 setup(
     ext_modules=[
         Extension(
-            "estim._kernels",
-            sources=["estim/_kernels.cc"],
+            "estim.forward._kernels",
+            sources=["estim/forward/_kernels.cc"],
             include_dirs=[os.path.join(os.path.dirname(jaxlib.__file__), "include")],
             language="c++",
             # -fno-math-errno and -fno-trapping-math change no result (no errno, no floating-

@@ -1,8 +1,8 @@
-"""``python -m estim``: the command line (see ``estim._cli``)."""
+"""``python -m estim``: the command line (see ``estim.app._cli``)."""
 
 import sys
 
-from ._cli import main
+from .app._cli import main
 
 if __name__ == "__main__":
     sys.exit(main())

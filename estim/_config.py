@@ -25,7 +25,7 @@ jax.config.update("jax_enable_x64", True)
 # or lax.scan) that touches fewer bytes per trip than this threshold, and calls no library
 # (dot, scatter, custom call), is instead compiled into one kernel. XLA's default
 # threshold, 1 KiB, leaves estim's loops out; at 300 kB the closed-form `simulate` (one
-# loop over balls, estim._simulate) is one kernel for any number of balls, and so is the
+# loop over balls, estim.forward._simulate) is one kernel for any number of balls, and so is the
 # ODE path's step loop for a single ball. Measured with `estim bench speed` (2-core
 # reference machine, jax 0.10.2) when the loops first became kernels: forward, 3 balls
 # 744 -> 357 us; gradient (jacfwd) of the golf ball 561 -> 171 us; figures since then in

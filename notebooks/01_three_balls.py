@@ -24,7 +24,7 @@ def _():
     from matplotlib.figure import Figure
 
     import estim
-    from estim._plots import COLOURS  # the colours of estim's plots and replays
+    from estim.show._plots import COLOURS  # the colours of estim's plots and replays
 
     START = time.perf_counter()
     return COLOURS, FAST, Figure, OUT, ROOT, START, estim, jnp, json, md_table, mo, np, time

@@ -24,9 +24,9 @@ def _():
     from _common import FAST, OUT, ROOT, md_table  # notebooks/_common.py
     from matplotlib.figure import Figure
 
-    # The study itself is estim's `estim bench accuracy` (estim._bench, not exported as
+    # The study itself is estim's `estim bench accuracy` (estim.app._bench, not exported as
     # public API): the same code, so these numbers are comparable with the committed ones.
-    from estim import _bench as bench
+    from estim.app import _bench as bench
 
     START = time.perf_counter()
 
@@ -79,7 +79,7 @@ def _(mo):
     (bocce, golf, ping-pong) thrown down the five-step staircase for 2.3 s.
 
     Every number below is measured in this run, by the code of `estim bench accuracy`
-    (`estim._bench.run_accuracy`): for each setting, the errors of the event times, of the
+    (`estim.app._bench.run_accuracy`): for each setting, the errors of the event times, of the
     final positions (three balls) and of the golf ball's gradient
     $\partial x_\text{final} / \partial(e, \mu_t, v_{x0})$ (`jax.grad`) against a
     reference, the median time of a forward call (three balls) and of a gradient, and the

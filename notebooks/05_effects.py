@@ -27,8 +27,8 @@ def _():
     from matplotlib.figure import Figure
 
     import estim
-    import estim._ode as estim_ode  # only for TRACE_COUNT: how often the ODE solver was traced
-    from estim._plots import COLOURS  # the colours of estim's plots and replays
+    import estim.forward._ode as estim_ode  # only for TRACE_COUNT: how often the ODE solver was traced
+    from estim.show._plots import COLOURS  # the colours of estim's plots and replays
 
     START = time.perf_counter()
     TRACES_AT_START = estim_ode.TRACE_COUNT
@@ -144,7 +144,7 @@ def _(BALLS, T_END, TRACES_AT_START, TS, estim_ode, air_scene, estim, median_s, 
 
     `estim.simulate` takes its physics from the scene. On `stairs.xml` (gravity only) it
     runs the closed form: the ODE solver was traced **{TRACES_AFTER_VACUUM} times**
-    (`estim._ode.TRACE_COUNT`, which counts traces of the ODE program) for the four balls,
+    (`estim.forward._ode.TRACE_COUNT`, which counts traces of the ODE program) for the four balls,
     first call {VACUUM_FIRST_S:.1f} s with JAX's compile, then {VACUUM_US:.0f} µs per
     call. The same call on `stairs_air.xml`, which adds one line,
     `<option density="1.204" viscosity="1.81e-5"/>`, traces the ODE program once

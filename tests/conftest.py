@@ -29,7 +29,7 @@ B = 64  # every batched simulation has exactly this many balls (padded)
 NT = 64  # every ``ts`` has exactly this many sample times (padded)
 
 # A ball alone and the same ball in a batch run different compiled code: for one ball XLA
-# drops the loop over balls (estim._simulate) and compiles its body kernel by kernel, for
+# drops the loop over balls (estim.forward._simulate) and compiles its body kernel by kernel, for
 # several it compiles the loop as one kernel; XLA:CPU contracts multiply-adds into fused
 # ones differently in the two, so the closed forms of a bounce series (the times and
 # positions of its events, states sampled in it) may differ in their last bits (1 ulp
@@ -49,10 +49,9 @@ G = 9.81
 @contextlib.contextmanager
 def jax_path():
     """Run estim's closed-form path on the JAX solver (the path of backends without its
-    native kernels, estim._native) instead of the kernels, within the block. Programs
+    native kernels, estim.forward._native) instead of the kernels, within the block. Programs
     traced (jitted) before keep the path they were traced with."""
-    from estim import _native
-
+    from estim.forward import _native
     was = _native.ENABLED
     _native.ENABLED = False
     try:

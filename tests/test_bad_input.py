@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 import estim
-from estim._cli import main
-from estim._tracks import TracksError, check_units, read_tracks_csv, write_tracks_csv
+from estim.app._cli import main
+from estim.tracks._tracks import TracksError, check_units, read_tracks_csv, write_tracks_csv
 
 ROOT = Path(__file__).resolve().parents[1]
 STAIRS = ROOT / "data" / "scenes" / "stairs.xml"
@@ -165,9 +165,9 @@ def test_fit_rejects_bad_data(stairs, demo, what, words):
 
 
 def test_fit_accepts_rows_without_data_in_any_order(stairs, demo):
-    """Rows with no coordinate at all carry no data (estim._job.fit_pixels pads tracks with
+    """Rows with no coordinate at all carry no data (estim.fitting._job.fit_pixels pads tracks with
     such rows at the last time, to share one compiled fit): their times are not checked."""
-    from estim._fit import _check_inputs
+    from estim.fitting._fit import _check_inputs
 
     t, p = demo_data(demo, ["golf"])["golf"]
     t = np.concatenate([t, np.full(5, t[-1])])
@@ -430,7 +430,7 @@ def test_tracks_csv_with_a_byte_order_mark(tmp_path):
 
 
 def test_simulate_cli_reads_negative_numbers_in_scientific_notation():
-    from estim._cli import build_parser
+    from estim.app._cli import build_parser
 
     args = build_parser().parse_args(["simulate", "--ball", "golf", "--vz0", "-1e6", "--x0", "-.5E-1"])
     assert args.vz0 == -1e6 and args.x0 == -0.05

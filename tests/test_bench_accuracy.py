@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estim._bench import ACCURACY_RTOLS, ACCURACY_SOLVERS, TABLE_END, TABLE_START
-from estim._cli import main
+from estim.app._bench import ACCURACY_RTOLS, ACCURACY_SOLVERS, TABLE_END, TABLE_START
+from estim.app._cli import main
 
 PAGES = Path(__file__).resolve().parent.parent / "docs" / "pages"
 pytestmark = pytest.mark.slow  # compiles four ODE programs (about a minute on 2 cores)
@@ -91,6 +91,6 @@ def test_committed_study_is_complete_and_consistent():
         assert x["final_position_error"] < 1e-11, x
     chk = r["air"]["reference_check"]
     assert chk["events_match"] and chk["final_position_error"] < 1e-9, chk
-    from estim._bench import format_accuracy
+    from estim.app._bench import format_accuracy
 
     assert format_accuracy(r).strip() in (PAGES / "accuracy.md").read_text()

@@ -1,4 +1,4 @@
-"""The ``estim`` command line (``estim._cli.main`` in-process, one console subprocess)."""
+"""The ``estim`` command line (``estim.app._cli.main`` in-process, one console subprocess)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import estim
-from estim._cli import main
+from estim.app._cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = str(ROOT / "data" / "scenes" / "stairs.xml")
@@ -197,7 +197,7 @@ def test_restrict_cpus_fresh_process():
         pytest.skip("needs os.sched_setaffinity (Linux)")
     code = (
         "import os, subprocess, sys, json\n"
-        "from estim._bench import restrict_cpus\n"
+        "from estim.app._bench import restrict_cpus\n"
         "restrict_cpus(1)\n"
         "import jax.numpy as jnp\n"
         "child = subprocess.run([sys.executable, '-c', 'import os; print(len(os.sched_getaffinity(0)))'],\n"

@@ -18,9 +18,9 @@ from conftest import STAIRS_XML, jax_path, seed_params
 
 import estim
 from estim import _config
-from estim._contact import inner
-from estim._simulate import flat_params
-from estim._solver import plan, replay
+from estim.forward._contact import inner
+from estim.forward._simulate import flat_params
+from estim.forward._solver import plan, replay
 
 _PROBE = (
     "import os, json, sys\n"
@@ -95,7 +95,7 @@ def test_event_loops_compile_to_one_kernel():
     grad_hlo = jax.jit(jax.jacfwd(final_x)).lower(jnp.float64(0.7)).compile().as_text()
 
     # simulate itself on the JAX path (estim's path without its native kernels): the three
-    # seed balls, one at a time in a loop (estim._simulate), and the jacfwd of the golf
+    # seed balls, one at a time in a loop (estim.forward._simulate), and the jacfwd of the golf
     # ball's final x through it.
     with jax_path():
         sim_hlo = _simulate_hlo(scene, seed_params(scene))
@@ -129,7 +129,7 @@ def _entry(hlo: str) -> str:
 def test_native_forward_is_one_call_and_its_derivative_one_loop_kernel():
     """On the native kernels the forward program is the kernel's call and nothing else
     that computes (no loop, no check kernel); its derivative replays the structure in one
-    loop kernel (estim._native)."""
+    loop kernel (estim.forward._native)."""
     scene = estim.load_scene(STAIRS_XML)
     golf = estim.Params.for_ball(scene, "golf", e=0.7, mu_t=0.98, velocity=(1.15, 0.0, 0.0))
     entry = _entry(_simulate_hlo(scene, seed_params(scene)))

@@ -98,7 +98,7 @@ def test_quickstart_fit_in_five_lines(monkeypatch, capsys):
 
 
 def test_cli_page_covers_every_command_and_option():
-    from estim._cli import build_parser
+    from estim.app._cli import build_parser
 
     page = (PAGES / "cli.md").read_text()
 

@@ -16,7 +16,7 @@ import pytest
 from conftest import STAIRS_XML
 
 import estim
-from estim._cli import main
+from estim.app._cli import main
 
 SEED = {"bocce": 0.55, "golf": 0.70, "pingpong": 0.85}
 G = 9.81

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 import estim
-from estim._fit import PARAMETERS, _plan_at, _Problem, _residuals
 from estim._json import dumps
-from estim._loss import robust_loss
-from estim._trajectory import REST
+from estim.fitting._fit import PARAMETERS, _plan_at, _Problem, _residuals
+from estim.fitting._loss import robust_loss
+from estim.forward._trajectory import REST
 
 ROOT = Path(__file__).resolve().parents[1]
 STAIRS = ROOT / "data" / "scenes" / "stairs.xml"
@@ -129,7 +129,7 @@ def test_start_resolves_low_flights(stairs, seed, ball, n_true):
     """In 3 mm noise the splitter resolves the bounces before the flights drop below ~2 cm
     (the true times, from the exact events, to one frame), and reads e and mu_t from them;
     it used to stop at the first flight lower than 18 noise levels (no bounce resolved)."""
-    from estim._initial import initial_guess
+    from estim.fitting._initial import initial_guess
 
     truth, events = _draw_truth(stairs, seed)
     t, pos = _data(stairs, truth, seed, 0.003)[ball]

@@ -1,4 +1,4 @@
-"""``estim fit`` (``estim._cli.main`` in-process): the bundled demo tracks against their
+"""``estim fit`` (``estim.app._cli.main`` in-process): the bundled demo tracks against their
 truth, outputs, bad input (exit 2 with a message) and pixel mode on a real table drop."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-import estim._job  # imported here, at collection, so later tests never see a closed stream
-from estim._cli import main
+import estim.fitting._job  # imported here, at collection, so later tests never see a closed stream
+from estim.app._cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = str(ROOT / "data" / "scenes" / "stairs.xml")
@@ -105,6 +105,6 @@ def test_fit_pixels_real_table(capsys):
 
 
 def test_fit_progress_follows_sys_stderr(capsys):
-    say = estim._job._progress()
+    say = estim.fitting._job._progress()
     say("hello from the progress reporter")
     assert "hello from the progress reporter" in capsys.readouterr().err

@@ -57,7 +57,7 @@ PATHS = ["closed_form", "ode"]
 # atol 1e-9, contact slack 1e-6 m) meets the same tolerances: in a vacuum every flight is
 # a parabola, which a Runge-Kutta step of order >= 2 reproduces to rounding, each contact
 # time is a Newton root of the RK step's guard (to rounding), and bounce series are summed
-# by the same closed forms (estim._train). rtol and the slack bound the error only where
+# by the same closed forms (estim.forward._train). rtol and the slack bound the error only where
 # the path is not a parabola (air), which no case here has.
 TOL = {"closed_form": 1e-9, "ode": 1e-9}
 DTOL = {"closed_form": 1e-8, "ode": 1e-8}
@@ -1231,7 +1231,7 @@ def test_slide_along_the_ridge_of_a_bevel_and_a_corner_face(stairs, path):
 # ---------------------------------------------------------------------------------------
 # Degenerate contacts the closed forms miss (found by an adversarial audit, session 10).
 # Each ball passed through a solid with complete = True. The planner now checks its path
-# (estim._simulate._stays_outside) and reports such a ball incomplete, so simulate raises;
+# (estim.forward._simulate._stays_outside) and reports such a ball incomplete, so simulate raises;
 # resolving the contacts themselves is open (docs/pages/hard-cases.md, "Open").
 # ---------------------------------------------------------------------------------------
 

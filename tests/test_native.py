@@ -1,10 +1,10 @@
-"""The native kernels (estim/_kernels.cc) against the JAX solver they port.
+"""The native kernels (estim/forward/_kernels.cc) against the JAX solver they port.
 
 On the CPU, ``estim.simulate``, the fit and the sensitivities run the closed-form primal
-on the native kernels and replay its structure in JAX for derivatives (estim._native);
+on the native kernels and replay its structure in JAX for derivatives (estim.forward._native);
 the rest of the suite tests that path against closed forms, finite differences and known
-parameters. Here the independent truth is the JAX solver itself (``estim._solver``,
-``estim._trajectory``, the path estim takes on other backends): the same discrete
+parameters. Here the independent truth is the JAX solver itself (``estim.forward._solver``,
+``estim.forward._trajectory``, the path estim takes on other backends): the same discrete
 structure, bit for bit, and the same numbers to rounding, ball by ball, over balls drawn
 to hit every kind of segment.
 """
@@ -20,9 +20,9 @@ import pytest
 from conftest import ROOT, jax_path, l1_depth
 
 import estim
-from estim import _native
-from estim._simulate import flat_params
-from estim._solver import plan as jax_plan
+from estim.forward import _native
+from estim.forward._simulate import flat_params
+from estim.forward._solver import plan as jax_plan
 
 # Rounding: the kernel evaluates every closed form in the order the JAX code writes it,
 # but its log, expm1 and pow are the C library's, not XLA's (which differ in the last
@@ -34,9 +34,9 @@ ROUNDING = 1e-12
 
 
 def test_kernels_are_built_and_used():
-    """The install built estim/_kernels.cc (it needs a C++ compiler; without one estim
+    """The install built estim/forward/_kernels.cc (it needs a C++ compiler; without one estim
     installs and runs the JAX solver), and on the CPU estim uses it."""
-    assert _native.available(), "estim._kernels was not built: pip install -e . needs a C++ compiler"
+    assert _native.available(), "estim.forward._kernels was not built: pip install -e . needs a C++ compiler"
     assert jax.default_backend() == "cpu" and _native.active()
 
 

@@ -14,7 +14,7 @@ import pytest
 from conftest import ROOT
 
 import estim
-from estim import _ode
+from estim.forward import _ode
 
 SEED = {"bocce": 0.55, "golf": 0.70, "pingpong": 0.85}
 G = 9.81
@@ -156,7 +156,7 @@ def test_magnus_flight_matches_closed_form(stairs):
 
 def test_air_matches_mujoco_fluid_model():
     """MuJoCo's inertia-box fluid model for a sphere is estim's quadratic drag with
-    C_D = 2.4 / pi (per axis) and Stokes drag times sqrt(12/5) / 2 (see estim._effects):
+    C_D = 2.4 / pi (per axis) and Stokes drag times sqrt(12/5) / 2 (see estim.model._air):
     check both against MuJoCo's own acceleration for a ball moving along x."""
     r, m, v = 0.02, 0.0027, 5.0
     for density, viscosity in ((1.2, 0.0), (0.0, 1.8e-5)):

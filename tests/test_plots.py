@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import estim
-from estim._fit import BallFit, FitResult
+from estim.fitting._fit import BallFit, FitResult
 
 SEED_BALLS = ("bocce", "golf", "pingpong")
 IMPACTS = {"bocce": 9, "golf": 6, "pingpong": 4}  # the seed scene (README)
@@ -157,7 +157,7 @@ def test_fit_residual_and_loss_plots(tmp_path):
 
 
 def test_demo_writes_heights_and_energy(tmp_path):
-    from estim._demo import run_demo
+    from estim.app._demo import run_demo
 
     summary = run_demo(tmp_path)
     for name in ("heights.png", "energy.png"):

@@ -1,4 +1,4 @@
-"""The packed storage of a Trajectory (estim._record): the views give back exactly what was
+"""The packed storage of a Trajectory (estim.forward._record): the views give back exactly what was
 packed, a ball's views are the batch's views at its index, and a jitted simulate hands
 back the few packed arrays, not one array per field."""
 
@@ -11,8 +11,8 @@ import pytest
 from conftest import BATCH_ROUNDING, SEED_T_END, G, run, seed_arrays
 
 import estim
-from estim._record import layout_of, pack, unpack
-from estim._trajectory import Events, State
+from estim.forward._record import layout_of, pack, unpack
+from estim.forward._trajectory import Events, State
 
 
 def _parts(rng, batch):

@@ -22,9 +22,9 @@ import pytest
 from PIL import Image
 
 import estim
-from estim import _replay
-from estim._cli import main
-from estim._plots import COLOURS
+from estim.app._cli import main
+from estim.show import _replay
+from estim.show._plots import COLOURS
 
 SCENE = str(Path(__file__).resolve().parents[1] / "data" / "scenes" / "stairs.xml")
 G = 9.81
@@ -338,7 +338,7 @@ def test_cli_mp4_without_ffmpeg(capsys, tmp_path, files, monkeypatch):
 
 def test_demo_replays(tmp_path, files, capsys):
     """The demo's replay step: replay.gif (MuJoCo) and sideview.gif from out/fit.json."""
-    from estim._demo import write_replays
+    from estim.app._demo import write_replays
 
     tracks, fit = files
     (tmp_path / "out").mkdir()
@@ -350,8 +350,7 @@ def test_demo_replays(tmp_path, files, capsys):
 
 
 def test_demo_says_when_mujoco_cannot_render(tmp_path, files, capsys, monkeypatch):
-    from estim import _demo
-
+    from estim.app import _demo
     def broken(*args, **kwargs):
         raise _replay.RenderError("no OpenGL here")
 

@@ -1,4 +1,4 @@
-"""estim._scan.scan_used against lax.scan: same values and derivatives (forward and reverse
+"""estim.forward._scan.scan_used against lax.scan: same values and derivatives (forward and reverse
 mode), whatever the number of used items, the chunking and the batching."""
 
 import jax
@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from estim._scan import scan_used
+from estim.forward._scan import scan_used
 
 IDLE = -1.0  # an item that leaves the carry alone
 

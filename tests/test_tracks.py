@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import estim
-from estim._synthetic import synthesize_tracks
-from estim._tracks import (
+from estim.tracks._synthetic import synthesize_tracks
+from estim.tracks._tracks import (
     PixelTrack,
     Tracks,
     TracksError,

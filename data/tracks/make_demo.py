@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 import estim
-from estim._synthetic import synthesize_tracks
-from estim._tracks import write_tracks_csv
+from estim.tracks._synthetic import synthesize_tracks
+from estim.tracks._tracks import write_tracks_csv
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent.parent
@@ -84,7 +84,7 @@ def main() -> None:
     truth = {
         "scene": "data/scenes/stairs.xml",
         "csv": "data/tracks/stairs_demo.csv",
-        "generator": "estim._synthetic.synthesize_tracks (data/tracks/make_demo.py)",
+        "generator": "estim.tracks._synthetic.synthesize_tracks (data/tracks/make_demo.py)",
         "units": {"t": "s", "position": "m", "velocity": "m/s"},
         "balls": {
             b: {

@@ -23,11 +23,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._config import require_x64
+from .._config import require_x64
+from ..model._params import Params
+from ..model._scene import Scene
 from ._contact import NORMAL, faces_for
 from ._native import active_plan
-from ._params import Params
-from ._scene import Scene
 from ._solver import segments_of
 from ._trajectory import event_flights, list_events
 

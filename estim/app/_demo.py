@@ -4,16 +4,22 @@ the replays of the demo fit."""
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from ._json import dump
+from .._json import dump
+from ..forward._simulate import simulate
+from ..model._params import Params
+from ..model._scene import load_scene
 
 __all__ = ["DEMO_TRACKS", "SEED", "SEED_SCENE", "run_demo", "format_summary", "seed_params"]
 
-SEED_SCENE = Path(__file__).resolve().parent.parent / "data" / "scenes" / "stairs.xml"
-DEMO_TRACKS = Path(__file__).resolve().parent.parent / "data" / "tracks" / "stairs_demo.csv"
+SEED_SCENE = Path(__file__).resolve().parents[2] / "data" / "scenes" / "stairs.xml"
+DEMO_TRACKS = Path(__file__).resolve().parents[2] / "data" / "tracks" / "stairs_demo.csv"
 
 # The seed experiment: restitution per ball, shared tangential coefficient and release
 # velocity, simulated over [0, T_END]. Release positions come from the scene file.
@@ -42,11 +48,6 @@ def seed_params(scene, names=None, *, e=None, mu_t=SEED["mu_t"], velocity=SEED["
     scene lacks is a KeyError naming the scene's balls; one without a seed e and no ``e``
     given, a ValueError.
     """
-    import jax
-    import jax.numpy as jnp
-
-    from ._params import Params
-
     names = list(names) if names is not None else [b.name for b in scene.balls if b.name in SEED["e"]]
     rows = []
     for name in names:
@@ -63,15 +64,11 @@ def run_demo(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None
     """Simulate the seed scene's balls together (one batched call), write
     ``summary.json``, ``heights.png`` (with the impacts) and ``energy.png`` into
     ``out_dir`` (created if missing) and return the summary."""
-    import jax.numpy as jnp
-
-    import estim
-
     scene_path = str(scene_path) if scene_path is not None else default_scene_path()
-    scene = estim.load_scene(scene_path)
+    scene = load_scene(scene_path)
     balls = [b for b in scene.balls if b.name in SEED["e"]] or list(scene.balls)
     t_end = SEED["t_end"]
-    params = estim.Params(
+    params = Params(
         [SEED["e"].get(b.name, 0.7) for b in balls],
         [SEED["mu_t"]] * len(balls),
         [b.radius for b in balls],
@@ -79,7 +76,7 @@ def run_demo(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None
         [SEED["velocity"]] * len(balls),
     )
     ts = jnp.linspace(0.0, t_end, n_samples)
-    traj = estim.simulate(scene, params, t_end, ts=ts)
+    traj = simulate(scene, params, t_end, ts=ts)
 
     ev = traj.events
     count = np.asarray(ev.count)
@@ -114,7 +111,7 @@ def run_demo(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike | None
     with open(out / "summary.json", "w") as fh:
         dump(summary, fh, indent=2)
         fh.write("\n")
-    from ._plots import plot_energy, plot_heights
+    from ..show._plots import plot_energy, plot_heights  # lazy: matplotlib
 
     names = [b.name for b in balls]
     plot_heights(traj, names, out / "heights.png",
@@ -129,10 +126,8 @@ def write_replays(out_dir: str | os.PathLike, *, scene_path: str | os.PathLike |
     """The replays of ``out_dir/fit.json`` against the tracks: ``replay.gif`` (MuJoCo) and
     ``sideview.gif`` (matplotlib). Where MuJoCo cannot render (no OpenGL), says so on
     stderr and writes the side view only. Returns the files written."""
-    import sys
-
-    from ._replay import RenderError, render_replay
-    from ._sideview import render_sideview
+    from ..show._replay import RenderError, render_replay  # lazy: MuJoCo
+    from ..show._sideview import render_sideview  # lazy: matplotlib
 
     scene_path = str(scene_path) if scene_path is not None else default_scene_path()
     out = Path(out_dir)

@@ -1,14 +1,14 @@
 // The closed-form solver of estim as native CPU kernels, called from JAX through its
-// foreign function interface (XLA FFI; estim._native registers and calls them).
+// foreign function interface (XLA FFI; estim.forward._native registers and calls them).
 //
 // What runs here is the *primal* of the gravity-only path: the plan of every ball (the
 // discrete structure of its solution and its segments), its samples, its event list and
 // its packed Trajectory rows. Derivatives never come here: JAX computes them by replaying
-// the structure this kernel found with the differentiable closed forms of estim._solver
-// (estim._native, the custom_jvp). Every function below is a line-by-line port of the
+// the structure this kernel found with the differentiable closed forms of estim.forward._solver
+// (estim.forward._native, the custom_jvp). Every function below is a line-by-line port of the
 // JAX function of the same name, with the same formulas and the same tolerances; the
-// docstrings there carry the maths (estim._contact, estim._train, estim._solver,
-// estim._trajectory) and tests/test_native.py checks that both give the same structure
+// docstrings there carry the maths (estim.forward._contact, estim.forward._train, estim.forward._solver,
+// estim.forward._trajectory) and tests/test_native.py checks that both give the same structure
 // and the same numbers, to rounding, ball by ball.
 //
 // Why native: a JAX program of this event loop is a single XLA kernel of some 26,000 HLO
@@ -50,27 +50,27 @@ namespace {
 constexpr double kInf = std::numeric_limits<double>::infinity();
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-// estim._contact
+// estim.forward._contact
 constexpr double POSITION_TOL = 1e-12;
 constexpr double SPEED_TOL = 1e-12;
 constexpr double ACCEL_TOL = 1e-12;
 constexpr double ON_FACE_TOL = 1e-9;
 constexpr double REST_SPEED = 1e-9;
-// estim._train
+// estim.forward._train
 constexpr double GAP = 1e-6;
 constexpr double MAX_COUNT = 4503599627370496.0;  // 2^52
-// estim._trajectory
+// estim.forward._trajectory
 constexpr double LISTED_FLIGHT = 1e-6;
-// estim._simulate._inside: a ball starts inside a solid deeper than this
+// estim.forward._simulate._inside: a ball starts inside a solid deeper than this
 constexpr double INSIDE_TOL = 1e-9;
 
-// estim._solver: segment kinds and why a segment ends
+// estim.forward._solver: segment kinds and why a segment ends
 enum Kind : int32_t { FLIGHT = 0, TRAIN = 1, SLIDE = 2, UNUSED = 3 };
 enum Reason : int32_t { END = 0, CONTACT = 1, EXIT = 2, BOUNCES = 3, SETTLE = 4 };
-// estim._trajectory: event kinds
+// estim.forward._trajectory: event kinds
 enum EventKind : int32_t { IMPACT = 0, REST = 1 };
 
-// Columns of a face-table row (estim._contact.Faces.row).
+// Columns of a face-table row (estim.forward._contact.Faces.row).
 constexpr int ROW = 14, NORMAL = 0, OFFSET = 3, CENTRE = 4, HALF = 7, DIRECTION = 10, SOLID = 13;
 constexpr int LOWER = 6;  // bordering faces of lower rank per face
 
@@ -89,14 +89,14 @@ inline V3 operator+(V3 a, V3 b) { return v3(a[0] + b[0], a[1] + b[1], a[2] + b[2
 inline V3 operator-(V3 a, V3 b) { return v3(a[0] - b[0], a[1] - b[1], a[2] - b[2]); }
 inline V3 operator*(double s, V3 a) { return v3(s * a[0], s * a[1], s * a[2]); }
 inline V3 operator*(V3 a, double s) { return v3(a[0] * s, a[1] * s, a[2] * s); }
-// estim._contact.inner: x0 y0 + x1 y1 + x2 y2, left to right
+// estim.forward._contact.inner: x0 y0 + x1 y1 + x2 y2, left to right
 inline double inner(V3 a, V3 b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 inline bool all_finite(V3 a) { return std::isfinite(a[0]) && std::isfinite(a[1]) && std::isfinite(a[2]); }
 const V3 kZero = v3(0.0, 0.0, 0.0);
 const V3 kUp = v3(0.0, 0.0, 1.0);
 
 // ---------------------------------------------------------------------------------------
-// The scene for one ball radius (estim._contact.Faces) and the solids (estim._simulate).
+// The scene for one ball radius (estim.forward._contact.Faces) and the solids (estim.forward._simulate).
 
 struct Scene {
   int n_faces, n_solids, n_boxes, n_planes;
@@ -126,7 +126,7 @@ struct Faces {
   double radius = 0.0;
   std::vector<double> offset;  // plane offset for the ball's centre, per face
   std::vector<int32_t> order;  // rank * faces + index: ties go to lower rank, then index
-  // The faces of each solid, [first[b], first[b + 1]) (estim._scene lists them solid by
+  // The faces of each solid, [first[b], first[b + 1]) (estim.model._scene lists them solid by
   // solid); empty when a scene lists them otherwise, and then no broad phase is used.
   std::vector<int> first;
   std::vector<double> nx, ny, nz;  // the faces' normals, one array per axis
@@ -198,14 +198,14 @@ struct Faces {
 };
 
 // ---------------------------------------------------------------------------------------
-// estim._contact
+// estim.forward._contact
 
 inline bool moves_into(double g1, double g2) {
   return (g1 < -SPEED_TOL) | ((std::fabs(g1) <= SPEED_TOL) & (g2 < -ACCEL_TOL));
 }
 
 // (Without branches, so that the compiler vectorises the face loop of ContactSearch:
-// each operation as in estim._contact.entering_time, the selects as jnp.where.)
+// each operation as in estim.forward._contact.entering_time, the selects as jnp.where.)
 inline __attribute__((always_inline)) double entering_time(double g0, double g1, double g2) {
   const bool touching = std::fabs(g0) <= POSITION_TOL;
   const bool pushed = moves_into(g1, g2);
@@ -289,7 +289,7 @@ struct Candidate {
   int face;
 };
 
-// Earliest face the ball enters, and when; (inf, -1) if none (estim._contact.first_contact).
+// Earliest face the ball enters, and when; (inf, -1) if none (estim.forward._contact.first_contact).
 // The faces of a solid are tested only while the solid's reach bound could still beat the
 // earliest contact found so far (to within the 1e-12 s that ties faces): the result is
 // that of testing every face, the blocked faces and the ties included.
@@ -377,7 +377,7 @@ double face_entering_time(const Faces& fc, int face, V3 p, V3 v, V3 a) {
   return entering_time(inner(n, p) - fc.offset[face], inner(n, v), inner(n, a));
 }
 
-// eq. (3) of estim._contact
+// eq. (3) of estim.forward._contact
 V3 reset(V3 v, V3 n, double e, double mu_t) {
   const double vn = inner(v, n);
   return mu_t * (v - vn * n) - e * vn * n;
@@ -487,7 +487,7 @@ double geometric_sum(const Ratio& r, double n) {
 
 double geometric_count(const Ratio& r, double y) {
   const double q = r.q;
-  // (r.lq() is log(q) for 0 < q < 1 and log(0.5) otherwise, as in estim._contact)
+  // (r.lq() is log(q) for 0 < q < 1 and log(0.5) otherwise, as in estim.forward._contact)
   const double arg = 1.0 - y * (1.0 - q);
   const double n_gen = arg > 0 ? std::floor(std::log(arg) / r.lq()) : kInf;
   double n = q >= 1.0 ? std::floor(y) : (q <= 0.0 ? (y >= 1 ? kInf : 0.0) : n_gen);
@@ -509,7 +509,7 @@ double safe_power(double x, double n) {
 }
 
 // ---------------------------------------------------------------------------------------
-// estim._train
+// estim.forward._train
 
 struct Series {
   V3 normal;
@@ -527,7 +527,7 @@ Series series(V3 v, V3 normal, V3 a) {
 
 // A ball's coefficients e and mu_t with the ratios its bounce series sum: e, e mu_t and
 // e^2, and for the divided differences K and L e2 mu_t and e2^2, e2 being e moved by GAP
-// off mu_t where they nearly agree (estim._train._differences).
+// off mu_t where they nearly agree (estim.forward._train._differences).
 struct Rates {
   double e, mu, e2, gap;
   Ratio by_e, by_emu, by_ee, by_e2mu, by_e2e2;
@@ -592,7 +592,7 @@ Start series_end(const Series& s, double n, const Rates& c) {
 }
 
 // ---------------------------------------------------------------------------------------
-// estim._solver
+// estim.forward._solver
 
 struct Decision {
   int32_t kind, support;
@@ -787,7 +787,7 @@ struct Plan {
   bool complete = false;
 };
 
-// The discrete structure of one ball's solution and its segments (estim._solver.plan).
+// The discrete structure of one ball's solution and its segments (estim.forward._solver.plan).
 // Only the slots used are written: pad() fills the rest where they are read.
 void plan(const Faces& fc, const Ball& b, double t_end, int S, Plan* out, ContactSearch& search) {
   out->decisions.resize(S);
@@ -809,7 +809,7 @@ void plan(const Faces& fc, const Ball& b, double t_end, int S, Plan* out, Contac
   out->complete = done;
 }
 
-// The unused slots of a plan as estim._solver.plan leaves them: unused decisions, and
+// The unused slots of a plan as estim.forward._solver.plan leaves them: unused decisions, and
 // segments that hold the final state.
 void pad(Plan* pl) {
   const int S = static_cast<int>(pl->segments.size());
@@ -825,7 +825,7 @@ void pad(Plan* pl) {
 }
 
 // ---------------------------------------------------------------------------------------
-// estim._simulate: a ball inside a solid (deeper than 1 nm), and the planned path's check
+// estim.forward._simulate: a ball inside a solid (deeper than 1 nm), and the planned path's check
 
 bool inside_solid(const Faces& fc, V3 p, double r) {
   const Scene& sc = *fc.s;
@@ -859,11 +859,11 @@ bool stays_outside(const Faces& fc, double r, const Plan& pl) {
 }
 
 // ---------------------------------------------------------------------------------------
-// estim._trajectory
+// estim.forward._trajectory
 
-// Position and velocity at time t (estim._trajectory.sample).
+// Position and velocity at time t (estim.forward._trajectory.sample).
 void sample(const Plan& pl, const Rates& c, double g, double t, V3* p, V3* v) {
-  // (Unused slots start at inf in estim._trajectory.sample: they never count.)
+  // (Unused slots start at inf in estim.forward._trajectory.sample: they never count.)
   int count = 0;
   for (int k = 0; k < pl.n_segments; ++k) count += pl.segments[k].t0 <= t;
   const int k = count > 0 ? count - 1 : 0;
@@ -925,8 +925,8 @@ struct LastBounce {
   Start at;
 };
 
-// Bounce j (from 1) of the train segment k, s (estim._trajectory._bounce /
-// estim._train.bounce).
+// Bounce j (from 1) of the train segment k, s (estim.forward._trajectory._bounce /
+// estim.forward._train.bounce).
 void train_bounce(const Segment& s, int k, double j, const Rates& c, double g, Event* ev, LastBounce* last) {
   const bool is_train = inner(s.v0, s.normal) > 0;
   const V3 normal = is_train ? s.normal : kUp;
@@ -949,7 +949,7 @@ struct EventList {
   std::vector<double> bounces, ends, capped;  // per segment
 };
 
-// The event list of one ball (estim._trajectory.list_events_used); returns the count of
+// The event list of one ball (estim.forward._trajectory.list_events_used); returns the count of
 // events that happened (listed or not).
 double list_events(const Plan& pl, const Rates& c, double g, int max_events, EventList* out) {
   // (Only the used segments: an unused one takes no slot, so every slot below falls in
@@ -1014,7 +1014,7 @@ Workspace& workspace() {
 // ---------------------------------------------------------------------------------------
 // The FFI handlers.
 //
-// Inputs come with the shapes estim._native gives them (a batch of N balls sharing one
+// Inputs come with the shapes estim.forward._native gives them (a batch of N balls sharing one
 // scene, t_end and ts) plus any leading axes that jax.vmap added: with
 // vmap_method="expand_dims" every input gets the same leading axes, of length 1 where it
 // is not batched. The handlers loop over the broadcast leading axes ("outer" items), each
@@ -1022,7 +1022,7 @@ Workspace& workspace() {
 
 // Where each part of a Trajectory's rows lives: the start column of each field in the
 // numbers (float) or the integers row, -1 where not kept. The order is that of
-// estim._native.FIELDS.
+// estim.forward._native.FIELDS.
 enum Field {
   FINAL_T, FINAL_POSITION, FINAL_VELOCITY, COMPLETE,
   POSITION, VELOCITY,
@@ -1071,7 +1071,7 @@ const ffi::NativeType<T>* at(const Outer& outer, const ffi::Buffer<T>& b, int64_
   return b.typed_data() + outer.offset(b.dimensions(), o);
 }
 
-// The scene as two buffers (estim._native._scene_operands): its numbers and its integers,
+// The scene as two buffers (estim.forward._native._scene_operands): its numbers and its integers,
 // each its arrays flattened one after the other, and the counts of its faces, solids,
 // boxes and planes (`counts`), which say where each array starts. (Two operands instead
 // of eleven: each operand, a constant of the program in a jitted call, costs the call a
@@ -1155,7 +1155,7 @@ struct BallBuffers {
   }
 };
 
-// The balls as rows of parameters (estim._record's packing of estim.Params), with the
+// The balls as rows of parameters (estim.forward._record's packing of estim.Params), with the
 // columns where e, mu_t, radius, position and velocity start.
 struct BallRows {
   ffi::Buffer<ffi::F64> rows;
@@ -1204,7 +1204,7 @@ void parallel_for(ffi::ThreadPool& pool, int64_t n, int64_t grain, Fn fn) {
 
 const ffi::Error kShapes = ffi::Error::InvalidArgument("estim: the native solver got inputs of unexpected shapes");
 
-// Plan every ball: decisions, segments, segment count and completion (estim._solver.Plan).
+// Plan every ball: decisions, segments, segment count and completion (estim.forward._solver.Plan).
 ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers, ffi::Buffer<ffi::S32> scene_integers,
                     ffi::Buffer<ffi::F64> balls, ffi::Buffer<ffi::F64> t_end, ffi::ResultBuffer<ffi::S32> kind, ffi::ResultBuffer<ffi::S32> support, ffi::ResultBuffer<ffi::F64> n,
                     ffi::ResultBuffer<ffi::S32> reason, ffi::ResultBuffer<ffi::S32> face,
@@ -1244,7 +1244,7 @@ ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers, f
   return ffi::Error::Success();
 }
 
-// The inputs of one ball against the checks of estim._simulate._INPUT_CHECKS: 0 if all
+// The inputs of one ball against the checks of estim.forward._simulate._INPUT_CHECKS: 0 if all
 // pass, else 1 + the index of the first that fails.
 int input_code(const Faces& fc, const Ball& b, bool has_mass, double mass, double drag, V3 spin, double t_end,
                const double* ts, int64_t T) {
@@ -1267,8 +1267,8 @@ int input_code(const Faces& fc, const Ball& b, bool has_mass, double mass, doubl
   return 0;
 }
 
-// One ball's Trajectory rows (estim._simulate: plan, samples, events, final state, dense
-// solution, packed as estim._record lays them out); returns its check code.
+// One ball's Trajectory rows (estim.forward._simulate: plan, samples, events, final state, dense
+// solution, packed as estim.forward._record lays them out); returns its check code.
 int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts, int64_t T, int S, int E,
                     ffi::Span<const int64_t> fields, double* num, int32_t* ints, Workspace& ws) {
   Plan& pl = ws.plan;
@@ -1315,7 +1315,7 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
       put_int(EVENT_FACE, j, ev.face);
       put_int(EVENT_KIND, j, ev.kind);
     }
-    // Unused slots: t = inf, zero vectors, face and kind -1 (estim._trajectory).
+    // Unused slots: t = inf, zero vectors, face and kind -1 (estim.forward._trajectory).
     fill(EVENT_T, n, E, kInf);
     for (Field f : {EVENT_POSITION, EVENT_PRE, EVENT_POST}) fill(f, 3 * n, 3 * E, 0.0);
     fill_int(EVENT_FACE, n, E, -1);
@@ -1361,7 +1361,7 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
 }
 
 // Every ball's Trajectory rows, with the argument checks when asked: then the first
-// failing check over the balls (the smallest code, as estim._simulate orders them) is
+// failing check over the balls (the smallest code, as estim.forward._simulate orders them) is
 // returned as an error carrying its message (`messages`: one per line, in code order).
 ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers,
                           ffi::Buffer<ffi::S32> scene_integers, ffi::Buffer<ffi::F64> e, ffi::Buffer<ffi::F64> mu_t,
@@ -1421,7 +1421,7 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numb
 
 }  // namespace
 
-// Both handlers' first arguments: XLA's thread pool, then the scene (estim._native.
+// Both handlers' first arguments: XLA's thread pool, then the scene (estim.forward._native.
 // _scene_operands; its `counts` attribute comes last).
 static auto scene_binding() {
   return ffi::Ffi::Bind()

@@ -28,12 +28,11 @@ import csv
 import math
 import os
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from ._scene import Scene
+from ..model._scene import Scene
 
 __all__ = [
     "TracksError",

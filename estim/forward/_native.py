@@ -1,17 +1,17 @@
 """The closed-form solver's primal on native CPU kernels, its derivatives in JAX.
 
-``estim/_kernels.cc`` ports the gravity-only solver of ``estim._solver``,
-``estim._contact``, ``estim._train`` and ``estim._trajectory`` line by line to C++, and
+``estim/forward/_kernels.cc`` ports the gravity-only solver of ``estim.forward._solver``,
+``estim.forward._contact``, ``estim.forward._train`` and ``estim.forward._trajectory`` line by line to C++, and
 JAX calls it through its foreign function interface (``jax.ffi``). What the kernels
 compute is the *primal*: each ball's plan (the discrete structure of its solution and its
 segments) and its packed :class:`estim.Trajectory` rows. Derivatives never enter them:
 
-- :func:`plan` gives the same :class:`estim._solver.Plan` as the JAX planner, as values
+- :func:`plan` gives the same :class:`estim.forward._solver.Plan` as the JAX planner, as values
   with no derivatives (the JAX planner stops gradients too); ``segments_of`` then
   differentiates by replaying the structure in JAX, as before.
 - :func:`trajectory_rows` is a ``jax.custom_jvp``: its tangent replays the ball's
   structure (found by :func:`plan`) through the same differentiable JAX pipeline that
-  the JAX path runs (``estim._simulate.ball_parts``): samples, events, final state and
+  the JAX path runs (``estim.forward._simulate.ball_parts``): samples, events, final state and
   dense solution, packed. Forward and reverse mode, ``vmap`` and ``jit`` all compose.
 
 Why: the JAX program of the event loop is one XLA kernel of some 26,000 HLO lines, which
@@ -34,14 +34,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import keep_loop
+from .._config import keep_loop
+from ..model._scene import Scene
+from ._balls import ball_parts, flat_params, map_balls
 from ._contact import faces_for
 from ._record import Layout, layout_of, pack
-from ._scene import Scene
 from ._solver import Decision, Plan, Segment
+from ._solver import plan as jax_plan
 from ._trajectory import KEEP, ClosedFormSolution, Events, State, trajectory_parts
 
-try:  # the extension built from estim/_kernels.cc (setup.py)
+try:  # the extension built from estim/forward/_kernels.cc (setup.py)
     from . import _kernels
 except ImportError:  # pragma: no cover - an install without a C++ compiler
     _kernels = None
@@ -87,7 +89,7 @@ def _register() -> None:
 
 
 def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
-    """The scene as the kernels read it: the face table (``estim._contact.Faces``, for
+    """The scene as the kernels read it: the face table (``estim.forward._contact.Faces``, for
     radius 0: the kernels grow it by each ball's radius), the solids and gravity, as two
     arrays (numbers, integers: each array flattened, one after the other, in the order of
     the kernel's ``SceneBuffers``), and the counts of faces, solids, boxes and planes that
@@ -103,16 +105,15 @@ def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
 
 
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
-    """``estim._solver.plan`` on the native kernel, for balls of any batch shape: the
+    """``estim.forward._solver.plan`` on the native kernel, for balls of any batch shape: the
     discrete structure of each ball's solution and its segments, as values (no
     derivatives flow through a plan)."""
-    from ._simulate import flat_params
 
     _register()
     scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
     batch = params.batch_shape
     # One row of parameters per ball, packed as the JAX loop over balls packs them
-    # (estim._simulate.map_balls): where both run, as in a derivative, XLA gathers them once.
+    # (estim.forward._simulate.map_balls): where both run, as in a derivative, XLA gathers them once.
     flat = flat_params(params)
     n = flat.e.shape[0]
     layout = layout_of({"params": flat}, 1)
@@ -144,17 +145,16 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
 def active_plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """The plan of one ball (or a batch) by the planner in use: :func:`plan` where the
-    kernels are :func:`active`, else the JAX planner ``estim._solver.plan`` (one ball)."""
+    kernels are :func:`active`, else the JAX planner ``estim.forward._solver.plan`` (one ball)."""
     if active():
         return plan(scene, params, t_end, max_segments)
-    from ._solver import plan as jax_plan
 
     return jax_plan(scene, params, t_end, max_segments)
 
 
 @functools.lru_cache(maxsize=64)
 def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: frozenset[str]) -> Layout:
-    """The layout of one ball's Trajectory rows (``estim._record``), as the JAX path packs
+    """The layout of one ball's Trajectory rows (``estim.forward._record``), as the JAX path packs
     them: built from placeholder parts of the right shapes and dtypes."""
     S, E = max_segments, max_events
 
@@ -183,7 +183,7 @@ def _field_columns(layout: Layout) -> np.ndarray:
         paths = [name + jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_flatten_with_path(placeholder)[0]]
         for path, leaf in zip(paths, leaves, strict=True):
             if path not in start:
-                raise AssertionError(f"estim._native: the kernel does not write the trajectory field {path!r}")
+                raise AssertionError(f"estim.forward._native: the kernel does not write the trajectory field {path!r}")
             start[path] = leaf.start
     return np.array([start[f] for f in FIELDS], dtype=np.int64)
 
@@ -195,8 +195,7 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
     in the order of ``params.batch_shape``), laid out by ``trajectory_layout``. With
     ``checks`` the kernel also checks the inputs and the completion of every ball, and
     fails with the first message of ``messages`` that applies (in the order of
-    ``estim._simulate``)."""
-    from ._simulate import flat_params
+    ``estim.forward._simulate``)."""
 
     _register()
     batch = params.batch_shape
@@ -224,7 +223,6 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
 
 @trajectory_rows.defjvp
 def _trajectory_rows_jvp(max_segments, max_events, keep, checks, messages, primals, tangents):
-    from ._simulate import ball_parts, flat_params, map_balls
 
     scene, params, t_end, ts = primals
     numbers, integers = trajectory_rows(scene, params, t_end, ts, max_segments, max_events, keep, checks, messages)
@@ -237,7 +235,7 @@ def _trajectory_rows_jvp(max_segments, max_events, keep, checks, messages, prima
             return pack(ball_parts(scene, prm, t_end, ts, pl, max_events, keep), layout)[0]
 
         rows = map_balls(ball, flat_params(params), plans)
-        # As on the JAX path (estim._simulate): where the caller said what to keep, the
+        # As on the JAX path (estim.forward._simulate): where the caller said what to keep, the
         # loop stays one kernel, also for one ball; else XLA may inline it and drop what
         # the caller leaves unused.
         return rows if keep == frozenset(KEEP) else keep_loop(rows)

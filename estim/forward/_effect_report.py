@@ -1,12 +1,12 @@
 """Effect sizes: how much each force of the air would change a scene's trajectories.
 
 For a scene and its balls, ``effect_sizes`` simulates the motion in a vacuum (the exact
-closed form) and under each available effect of ``estim._effects`` alone, and reports the
+closed form) and under each available effect of ``estim.model._air`` alone, and reports the
 difference: final position, the first and second bounce times, the largest distance
 between the two trajectories over ``[0, t_end]``, and the bounce counts. The effects:
 
 - ``still air``: quadratic and linear drag together (air at rest), against the vacuum;
-- ``quadratic drag``: eq. (1) of ``estim._effects`` alone (density, ``Params.drag_coefficient``);
+- ``quadratic drag``: eq. (1) of ``estim.model._air`` alone (density, ``Params.drag_coefficient``);
 - ``linear drag``: eq. (2) alone (Stokes drag, viscosity);
 - ``Magnus``: eq. (3) alone (drag switched off), for a stated spin;
 - ``wind``: a stated wind, against still air (so this row isolates the wind);
@@ -26,9 +26,10 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from ._effects import Air
-from ._params import Params
-from ._scene import Scene
+from ..model._air import Air
+from ..model._params import Params
+from ..model._scene import Scene
+from ._simulate import simulate
 from ._trajectory import IMPACT
 
 __all__ = ["AIR_DENSITY", "AIR_VISCOSITY", "EffectReport", "effect_sizes"]
@@ -204,7 +205,7 @@ def effect_sizes(
     """How much each force of the air changes the motion of a scene's balls.
 
     Simulates the balls in a vacuum (closed form) and with each effect alone (the ODE
-    path; see the module docstring of ``estim._effect_report`` for the list), and reports
+    path; see the module docstring of ``estim.forward._effect_report`` for the list), and reports
     the differences per effect and ball. One batched :func:`estim.simulate` call per
     effect; all air runs share one compiled program.
 
@@ -229,7 +230,6 @@ def effect_sizes(
     Returns:
         An :class:`EffectReport`.
     """
-    from ._simulate import simulate
 
     if not isinstance(params, Params):
         raise TypeError(f"params must be an estim.Params, got {type(params).__name__}")

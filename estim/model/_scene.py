@@ -10,7 +10,7 @@ it, so the picture and the physics share one file:
   body position as the default release point),
 - ``<option gravity>`` sets gravity, which must point along -z,
 - ``<option density viscosity wind>`` asks for air: quadratic drag and the Magnus force
-  (density), viscous drag (viscosity), moving air (wind). Force laws in ``estim._effects``.
+  (density), viscous drag (viscosity), moving air (wind). Force laws in ``estim.model._air``.
   A scene without them has gravity only and is solved in closed form.
 
 Geoms that MuJoCo itself never collides (``contype="0" conaffinity="0"``) are decoration and
@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._effects import Air
+from ._air import Air
 
 __all__ = ["Ball", "Scene", "load_scene"]
 

@@ -11,22 +11,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from .._config import CLOSED_FORM_COMPILE, jit, keep_loop, require_x64, top_level
+from ..model._params import PARAM_CHECKS, Params, check_t_end
+from ..model._scene import Scene
 from . import _native, _ode
-from ._config import CLOSED_FORM_COMPILE, jit, keep_loop, require_x64, top_level
+from ._balls import ball_parts, check_outside, flat_params, inside, map_balls
 from ._ode import OdeSettings
-from ._params import PARAM_CHECKS, Params, check_t_end
 from ._record import layout_of, pack, unpack
-from ._scene import Scene
-from ._solver import TRAIN, Plan, plan, segments_of
+from ._solver import plan
 from ._trajectory import (
     KEEP,
-    ClosedFormSolution,
-    State,
     Trajectory,
     check_keep,
-    list_events_used,
-    sample,
-    trajectory_parts,
 )
 
 __all__ = ["simulate"]
@@ -55,10 +51,10 @@ def simulate(
     - *gravity only* (no ``scene.air``): every flight is a parabola and every contact time
       the root of a quadratic, so the result is exact to rounding and no contact can be
       missed; bounce series (including Zeno series with infinitely many bounces) are summed
-      in closed form (``estim._solver``). No ODE solver runs.
-    - *with air* (drag, wind, Magnus; ``estim._effects``): flights are integrated with a
+      in closed form (``estim.forward._solver``). No ODE solver runs.
+    - *with air* (drag, wind, Magnus; ``estim.model._air``): flights are integrated with a
       diffrax solver, contacts located by root finding under a step bound that skips none
-      (``estim._ode``).
+      (``estim.forward._ode``).
 
     Either way the result is differentiable (``jax.grad``, ``jax.jacfwd``) with respect to
     every field of ``params``, ``t_end``, the sample times and the scene geometry;
@@ -78,7 +74,7 @@ def simulate(
         max_steps: static bound on the ODE path's steps per ball (accepted and rejected).
         contact_slack: on the ODE path, how far (m) the integrated path may stray within a
             step from the parabola its contacts are predicted on: no contact deeper than
-            this is ever skipped (``estim._ode``). The tolerances and the slack are traced:
+            this is ever skipped (``estim.forward._ode``). The tolerances and the slack are traced:
             changing them does not recompile.
         max_segments: static bound on the closed-form segments per ball (a segment is a
             flight, a whole bounce series on one face, or a slide). Bounded compute: a ball
@@ -138,7 +134,7 @@ def simulate(
         tv = np.asarray(ts)
         if not np.all(np.isfinite(tv)) or np.any(tv < 0) or np.any(tv > float(t_end)):
             raise ValueError(f"ts must be finite and lie in [0, t_end={float(t_end)}]")
-    _check_outside(scene, params)
+    check_outside(scene, params)
     _check_effects(scene, params)
     if solver is not None and not (
         isinstance(solver, diffrax.AbstractRungeKutta)
@@ -161,10 +157,10 @@ def simulate(
         rk = solver or diffrax.Tsit5()
         settings = OdeSettings(rk, jnp.asarray(rtol, dtype=jnp.float64), jnp.asarray(atol, dtype=jnp.float64),
                                jnp.asarray(contact_slack, dtype=jnp.float64), int(max_steps))
-        traj = _simulate_ode(scene, params, t_end, ts, settings, max_events, throw and traced, keep)
+        traj = solve_ode(scene, params, t_end, ts, settings, max_events, throw and traced, keep)
         message = _INCOMPLETE_ODE
     else:
-        traj = _simulate(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep,
+        traj = solve_closed_form(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep,
                          _native.active())
         message = _INCOMPLETE
     # (Read from NumPy views of the rows: no eager JAX operation.)
@@ -190,23 +186,8 @@ _INCOMPLETE_ODE = (
 )
 
 
-def flat_params(params: Params) -> Params:
-    """The parameters with every field broadcast to the batch and flattened to one axis of balls."""
-    batch = params.batch_shape
-
-    def flatten(x, event_shape):
-        return jnp.broadcast_to(x, batch + event_shape).reshape((-1,) + event_shape)
-
-    mass = None if params.mass is None else flatten(params.mass, ())
-    return Params(
-        flatten(params.e, ()), flatten(params.mu_t, ()), flatten(params.radius, ()),
-        flatten(params.position, (3,)), flatten(params.velocity, (3,)), mass=mass,
-        drag_coefficient=flatten(params.drag_coefficient, ()), spin=flatten(params.spin, (3,)),
-    )
-
-
 @jit
-def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
+def solve_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
     _ode.TRACE_COUNT += 1
     batch = params.batch_shape
     flat = flat_params(params)
@@ -215,7 +196,7 @@ def _simulate_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
         first = jnp.min(jnp.where(code > 0, code, len(_INPUT_CHECKS) + 1))
         fails = first <= len(_INPUT_CHECKS)
         flat = eqx.branched_error_if(flat, fails, jnp.where(fails, first - 1, 0), list(_INPUT_CHECKS))
-    # Plan every ball first, then replay only as many steps as the longest uses (estim._scan).
+    # Plan every ball first, then replay only as many steps as the longest uses (estim.forward._scan).
     plans = jax.vmap(lambda prm: _ode.plan(scene, prm, t_end, settings))(flat)
     n_used = jnp.max(plans.n_steps)
     out = jax.vmap(lambda prm, pl: _ode.finish(scene, prm, t_end, ts, settings, max_events, pl, n_used))(flat, plans)
@@ -249,37 +230,8 @@ def _check_effects(scene: Scene, params: Params) -> None:
             )
 
 
-def map_balls(fn, flat: Params, *per_ball):
-    """``jax.lax.map`` of ``fn(params, *items)`` over the balls of flat parameters (and
-    of the arrays ``per_ball``, one item per ball). The parameters enter the loop as one
-    row per ball, gathered by one kernel: where the caller computes them (slices and
-    stacks of a theta under jacfwd), that is one kernel instead of one per field."""
-    layout = layout_of({"params": flat}, 1)
-    rows, _ = pack({"params": flat}, layout, (flat.e.shape[0],))
-    return jax.lax.map(lambda items: fn(unpack(items[0], None, layout, "params"), *items[1:]), (rows,) + per_ball)
-
-
-def ball_parts(scene: Scene, prm: Params, t_end, ts, pl: Plan, max_events: int, keep: frozenset[str]) -> dict:
-    """One ball's Trajectory parts from its plan (``estim._trajectory.trajectory_parts``),
-    differentiably: the segments of ``pl`` with the derivatives of their replay, then the
-    samples, events, final state and dense solution that ``keep`` keeps. The JAX path runs
-    this for its primal; the native path for its tangent (``estim._native``)."""
-    g = scene.gravity
-    segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
-    pos = vel = events = None  # only what keep keeps is computed
-    if "samples" in keep:
-        pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, g, ts)
-    if "events" in keep:
-        events = list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
-    last = jnp.maximum(pl.n_segments - 1, 0)
-    final = State(t_end, segments.p1[last], segments.v1_post[last])
-    solution = ClosedFormSolution(segments=segments, structure=pl.decisions, e=prm.e, mu_t=prm.mu_t, gravity=g)
-    complete = pl.complete & _stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
-    return trajectory_parts(pos, vel, events, final, complete, solution, keep)
-
-
 @jit(options=CLOSED_FORM_COMPILE, static_argnames=("max_segments", "max_events", "checks", "keep", "native"))
-def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep, native):
+def solve_closed_form(scene, params, t_end, ts, max_segments, max_events, checks, keep, native):
     batch = params.batch_shape
     g = scene.gravity
 
@@ -287,7 +239,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep, 
         return x.reshape(batch + x.shape[1:])
 
     if native:
-        # The primal on the native kernels, derivatives replayed in JAX (estim._native);
+        # The primal on the native kernels, derivatives replayed in JAX (estim.forward._native);
         # the kernel runs the argument checks too, and fails with their message.
         record, flags = _native.trajectory_rows(scene, params, t_end, ts, max_segments, max_events, keep, checks,
                                                 _INPUT_CHECKS + (_INCOMPLETE,))
@@ -297,7 +249,7 @@ def _simulate(scene, params, t_end, ts, max_segments, max_events, checks, keep, 
     # Ball by ball, in one loop that XLA:CPU compiles as a single kernel (estim._config):
     # each ball's plan, its samples, and only the events it lists (on the seed scene 9, 6
     # and 4 of 64 slots); a ball's derivatives replay its own segments. With one ball at a
-    # time the branches of a segment (lax.cond in estim._solver) are branches, not both
+    # time the branches of a segment (lax.cond in estim.forward._solver) are branches, not both
     # sides computed and one selected as under vmap. Vectorised over balls, the seed's 3
     # balls took 329 us, 10,000 balls 309 ms; this way 235 us and 174 ms (docs/pages/
     # speed.md). A ball's result does not depend on the other balls of its batch. The loop
@@ -351,64 +303,10 @@ _INPUT_CHECKS = tuple(message for message, _ in PARAM_CHECKS) + (
 def _input_code(scene: Scene, prm: Params, t_end, ts):
     """0 if one ball's inputs pass every check of ``_INPUT_CHECKS``, else 1 + the index of
     the first that fails."""
-    inside_box, inside_plane = _inside(jnp, scene, prm.position[None], prm.radius[None])
+    inside_box, inside_plane = inside(jnp, scene, prm.position[None], prm.radius[None])
     bad = jnp.stack([~jnp.all(ok(prm)) for _, ok in PARAM_CHECKS] + [
         ~(jnp.isfinite(t_end) & (t_end > 0)),
         ~jnp.all(jnp.isfinite(ts) & (ts >= 0) & (ts <= t_end)),
         jnp.any(inside_box) | jnp.any(inside_plane),
     ])
     return jnp.where(jnp.any(bad), jnp.argmax(bad) + 1, 0).astype(jnp.int32)
-
-
-def _inside(xp, scene: Scene, p, r):
-    """Which solids balls of centres ``p (n, 3)`` and radii ``r (n,)`` start inside (deeper
-    than 1 nm): ``(n, boxes)`` and ``(n, planes)`` booleans. A box's points within r of the
-    ball's centre: the L1 excess of the centre over the box's half sizes, as in the contact
-    table (estim._scene, eq. (1))."""
-    c, h = xp.asarray(scene.box_centre), xp.asarray(scene.box_half)
-    depth = xp.sum(xp.maximum(xp.abs(p[:, None, :] - c[None]) - h[None], 0.0), axis=-1)
-    n, s = xp.asarray(scene.plane_normal), xp.asarray(scene.plane_offset)
-    height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim._contact.inner)
-    return depth < r[:, None] - 1e-9, height < s[None] + r[:, None] - 1e-9
-
-
-def _stays_outside(scene: Scene, radius, decisions, segments, n_segments):
-    """Whether the planned path keeps the ball outside every solid at the start, middle and
-    end of each segment it uses (the middle of a bounce series is not on one parabola, and
-    is not tested). A guard, not a solver: the closed forms find every contact of a
-    generic path, and this catches a degenerate one they miss (found: a flight whose apex
-    grazes a tread top 1e-12 m inside its edge, a ball sliding off an edge from 1e-12 m
-    inside it; docs/pages/hard-cases.md) so that the ball is reported incomplete instead
-    of passing through the solid."""
-    s = jax.lax.stop_gradient(segments)
-    tau = 0.5 * (s.t1 - s.t0)[:, None]
-    middle = s.p0 + s.v0 * tau + 0.5 * s.acc * tau * tau
-    middle = jnp.where((decisions.kind == TRAIN)[:, None], s.p0, middle)
-    points = jnp.stack([s.p0, middle, s.p1], axis=1).reshape(-1, 3)
-    used = jnp.repeat(jnp.arange(s.t0.shape[0]) < n_segments, 3)
-    r = jax.lax.stop_gradient(radius)
-    inside_box, inside_plane = _inside(jnp, scene, points, jnp.broadcast_to(r, used.shape))
-    inside = jnp.any(inside_box, axis=1) | jnp.any(inside_plane, axis=1)
-    return ~jnp.any(used & inside)
-
-
-def _check_outside(scene: Scene, params: Params, names=None) -> None:
-    """A ball must not start inside a solid (checked here when the values are concrete;
-    inside a user's jit by ``_input_code``). ``names``: the balls' names, for the message."""
-    leaves = (params.position, params.radius, scene.box_centre)
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
-        return
-    batch = params.batch_shape
-    p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
-    r = np.broadcast_to(np.asarray(params.radius), batch).reshape(-1)
-    inside_box, inside_plane = _inside(np, scene, p, r)
-    bad = np.flatnonzero(inside_box.any(axis=1) | inside_plane.any(axis=1))
-    if bad.size:
-        i = int(bad[0])
-        hit = [scene.names[j] for j in np.flatnonzero(inside_box[i])]
-        hit += [scene.names[scene.n_boxes + j] for j in np.flatnonzero(inside_plane[i])]
-        who = f"ball {i}" if names is None else f"ball {names[i]!r}"
-        raise ValueError(
-            f"{who} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
-            f"than its radius {r[i]} to the solid (release it outside every solid)"
-        )

@@ -5,11 +5,45 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
 import sys
+import time
 
-from ._demo import SEED, default_scene_path, seed_params
-from ._json import dumps
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._config import enable_compilation_cache
+from .._json import dumps
+from ..fitting._fit import DEFAULT_FREE
+from ..fitting._job import PIXEL_FREE, fit_csv, fit_pixels
+from ..forward._balls import check_outside
+from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
+from ..forward._simulate import simulate
+from ..model._params import Params
+from ..model._scene import load_scene
+from ..tracks._tracks import MAX_ABS_POSITION, MAX_ABS_TIME
+from ._bench import (
+    default_docs_dir,
+    format_accuracy,
+    format_fit_bench,
+    format_speed,
+    run_accuracy,
+    run_fit_bench,
+    run_speed,
+    write_accuracy,
+)
+from ._demo import (
+    DEMO_TRACKS,
+    SEED,
+    default_scene_path,
+    format_summary,
+    run_demo,
+    seed_params,
+    write_replays,
+)
 
 __all__ = ["main"]
 
@@ -218,9 +252,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    from ._config import enable_compilation_cache
+def progress(stream=None):
+    start = time.perf_counter()
 
+    def say(msg: str) -> None:
+        print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=stream or sys.stderr, flush=True)
+
+    return say
+
+
+def main(argv: list[str] | None = None) -> int:
     enable_compilation_cache()
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse's own errors exit with status 2
@@ -238,13 +279,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _cmd_simulate(args) -> int:
-    import jax.numpy as jnp
-    import numpy as np
-
-    import estim
-
-    from ._simulate import _check_outside
-    from ._tracks import MAX_ABS_POSITION, MAX_ABS_TIME
 
     e = args.e if args.e is not None else SEED["e"].get(args.ball)
     for name, value in (("--e", e), ("--mu-t", args.mu_t)):
@@ -254,14 +288,14 @@ def _cmd_simulate(args) -> int:
         raise UsageError(f"--t-end must be > 0 (seconds), got {args.t_end}")
 
     scene_path = args.scene or default_scene_path()
-    scene = estim.load_scene(scene_path)
+    scene = load_scene(scene_path)
     spec = scene.ball(args.ball)
     if e is None:
         raise UsageError(f"--e is required for ball {args.ball!r} (no seed value)")
     position = [spec.position[i] if v is None else v
                 for i, v in enumerate((args.x0, args.y0, args.z0))]
     velocity = [args.vx0, args.vy0, args.vz0]
-    # The limits of the track reader (estim._tracks): beyond them the numbers are not
+    # The limits of the track reader (estim.tracks._tracks): beyond them the numbers are not
     # metres and seconds of a tabletop experiment, whatever the simulator could do with them.
     for axis, v in zip("xyz", position, strict=True):
         if abs(v) > MAX_ABS_POSITION:
@@ -270,9 +304,9 @@ def _cmd_simulate(args) -> int:
     if args.t_end > MAX_ABS_TIME:
         raise UsageError(f"--t-end = {args.t_end:g} is not a time in seconds (> {MAX_ABS_TIME:g}); "
                          "milliseconds? estim never rescales")
-    params = estim.Params(e, args.mu_t, spec.radius, position, velocity)
-    _check_outside(scene, params, names=[args.ball])
-    traj = estim.simulate(scene, params, args.t_end)
+    params = Params(e, args.mu_t, spec.radius, position, velocity)
+    check_outside(scene, params, names=[args.ball])
+    traj = simulate(scene, params, args.t_end)
 
     ev = traj.events
     count = int(ev.count)
@@ -341,18 +375,13 @@ def _sensitivities(scene, theta, radius, position, v_yz, t_end):
     jitted, so repeated calls with the same shapes compile once."""
     global _SENS
     if _SENS is None:
-        import equinox as eqx
-        import jax
-        import jax.numpy as jnp
-
-        import estim
 
         @eqx.filter_jit
         def sens(scene, theta, radius, position, v_yz, t_end):
             def f(theta):
                 e, mu_t, vx0 = theta[0], theta[1], theta[2]
                 velocity = jnp.concatenate([vx0[None], v_yz])
-                traj = estim.simulate(scene, estim.Params(e, mu_t, radius, position, velocity), t_end)
+                traj = simulate(scene, Params(e, mu_t, radius, position, velocity), t_end)
                 ev = traj.events
                 valid = jnp.arange(ev.t.shape[-1]) < ev.count
                 times = jnp.where(valid, ev.t, 0.0)  # padding (inf) masked out
@@ -406,8 +435,6 @@ def _format_simulation(out: dict) -> str:
 
 
 def _cmd_bench_speed(args) -> int:
-    from ._bench import format_speed, run_speed
-
     result = run_speed(batch=args.batch, repeats=args.repeats, scene_path=args.scene, cpus=args.cpus)
     if args.json:
         print(dumps(result))
@@ -417,30 +444,21 @@ def _cmd_bench_speed(args) -> int:
 
 
 def _cmd_bench_fit(args) -> int:
-    from ._bench import format_fit_bench, run_fit_bench
-
     result = run_fit_bench(repeats=args.repeats)
     print(dumps(result) if args.json else format_fit_bench(result))
     return 0
 
 
 def _cmd_bench_accuracy(args) -> int:
-    import os
-
-    from ._bench import default_docs_dir, run_accuracy, write_accuracy
-    from ._job import _progress
-
     out = args.out or default_docs_dir()
     if os.path.exists(out) and not os.path.isdir(out):
         raise UsageError(f"--out {out}: not a directory")
     repeats = args.repeats or (3 if args.quick else 7)
-    result = run_accuracy(repeats=repeats, quick=args.quick, say=_progress())
+    result = run_accuracy(repeats=repeats, quick=args.quick, say=progress())
     paths = write_accuracy(result, out)
     if args.json:
         print(dumps(result))
     else:
-        from ._bench import format_accuracy
-
         print(format_accuracy(result))
     print("wrote " + ", ".join(paths), file=sys.stderr)
     return 0
@@ -450,10 +468,6 @@ def _cmd_bench_accuracy(args) -> int:
 
 
 def _cmd_effects(args) -> int:
-    import estim
-
-    from ._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
-
     for name, value in (("--e", args.e), ("--mu-t", args.mu_t)):
         if value is not None and not 0.0 <= value <= 1.0:
             raise UsageError(f"{name} must lie in [0, 1], got {value}")
@@ -463,7 +477,7 @@ def _cmd_effects(args) -> int:
         if value is not None and value < 0:
             raise UsageError(f"{name} must be >= 0, got {value}")
     scene_path = args.scene or default_scene_path()
-    scene = estim.load_scene(scene_path)
+    scene = load_scene(scene_path)
     if not scene.balls:
         raise UsageError(f"{scene_path}: the scene defines no balls (spheres on free bodies)")
     names = list(dict.fromkeys(args.ball)) if args.ball else [b.name for b in scene.balls]
@@ -493,8 +507,6 @@ def _cmd_effects(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from ._demo import DEMO_TRACKS, format_summary, run_demo
-
     summary = run_demo(args.out, scene_path=args.scene)
     print(format_summary(summary))
     print("wrote " + ", ".join(summary["files"]))
@@ -502,8 +514,6 @@ def _cmd_demo(args) -> int:
                                   json=False, loss="cauchy", pixels=False, frame_interval=None,
                                   metres_per_pixel=None, ball=None, from_bounce=0)
     code = _cmd_fit(fit_args)
-    from ._demo import write_replays
-
     print("wrote " + ", ".join(write_replays(args.out, scene_path=args.scene)))
     return code
 
@@ -512,9 +522,7 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_replay(args) -> int:
-    import os
-
-    from ._replay import EncoderNotFoundError, RenderError, check_output
+    from ..show._replay import EncoderNotFoundError, RenderError, check_output  # lazy: MuJoCo
 
     for what, path in (("tracks", args.tracks), ("fit", args.fit)):
         if not os.path.isfile(path):
@@ -533,11 +541,11 @@ def _cmd_replay(args) -> int:
     scene = args.scene or default_scene_path()
     options = dict(fps=args.fps, width=args.width, height=args.height, trail=args.trail)
     if args.view == "side":
-        from ._sideview import render_sideview
+        from ..show._sideview import render_sideview  # lazy: matplotlib
 
         info = render_sideview(scene, args.fit, args.tracks, args.out, **options)
     else:
-        from ._replay import render_replay
+        from ..show._replay import render_replay  # lazy: MuJoCo
 
         try:
             info = render_replay(scene, args.fit, args.tracks, args.out, **options)
@@ -561,15 +569,10 @@ def _also(args, base) -> dict:
 
 
 def _cmd_fit(args) -> int:
-    import os
-
-    from ._fit import DEFAULT_FREE
-    from ._job import PIXEL_FREE, _progress, fit_csv, fit_pixels, format_table, write_outputs
-
     scene = args.scene or default_scene_path()
     if not os.path.isfile(args.tracks):
         raise FileNotFoundError(f"tracks file not found: {args.tracks}")
-    say = _progress()
+    say = progress()
     extra = {}
     if args.pixels:
         if args.frame_interval is None or args.frame_interval <= 0:
@@ -594,12 +597,14 @@ def _cmd_fit(args) -> int:
     payload = result.to_json()
     payload.update(extra)
     if args.out:
+        from ..show._outputs import write_outputs  # lazy: matplotlib
+
         write_outputs(result, data, args.out, extra)
         say(f"wrote {os.path.join(args.out, 'fit.json')} and plots")
     if args.json:
         print(dumps(payload, indent=2))
     else:
-        print(format_table(result))
+        print(result.format_table())
         if extra:
             print(f"scale {extra['metres_per_pixel'] * 1e3:.4f} mm/px, surface row {extra['surface_row_px']:.1f} px")
     return 0 if result.converged else 1

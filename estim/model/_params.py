@@ -15,7 +15,7 @@ from ._scene import Scene
 __all__ = ["Params"]
 
 # Drag coefficient of a smooth sphere at Reynolds numbers 1e3-2e5 (ping-pong to bocce in
-# flight); see estim._effects.
+# flight); see estim.model._air.
 DRAG_COEFFICIENT = 0.47
 
 
@@ -47,7 +47,7 @@ class Params(eqx.Module):
         velocity: release velocity (m/s), shape ``(*batch, 3)``.
         mass: ball mass m > 0 (kg); needed only in a scene with air (``Params.for_ball``
             takes it from the scene), else ``None``.
-        drag_coefficient: C_D >= 0 of the quadratic drag (``estim._effects``), 0.47 (a
+        drag_coefficient: C_D >= 0 of the quadratic drag (``estim.model._air``), 0.47 (a
             smooth sphere) by default; used only in a scene with air.
         spin: angular velocity (rad/s), shape ``(*batch, 3)``, for the Magnus force; zero by
             default, and it must stay zero in a scene without air, where it has no effect.

@@ -12,10 +12,21 @@ import sys
 import tempfile
 import time
 
+import diffrax
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from ._demo import SEED, default_scene_path, seed_params
-from ._json import dump
+from .. import _config
+from .._json import dump
+from ..fitting._job import fit_csv
+from ..forward import _native
+from ..forward._ode import OdeSettings
+from ..forward._simulate import simulate, solve_closed_form, solve_ode
+from ..forward._trajectory import check_keep
+from ..model._params import Params
+from ..model._scene import load_scene
+from ._demo import DEMO_TRACKS, SEED, default_scene_path, seed_params
 
 __all__ = ["run_speed", "format_speed", "run_fit_bench", "format_fit_bench", "TARGETS", "REFERENCE",
            "run_accuracy", "format_accuracy", "write_accuracy"]
@@ -41,24 +52,24 @@ t0 = time.perf_counter()
 import jax
 import estim
 t1 = time.perf_counter()
-scene = estim.load_scene(sys.argv[1])
+scene = load_scene(sys.argv[1])
 e = json.loads(sys.argv[2])
 balls = [b for b in scene.balls if b.name in e]
-params = estim.Params([e[b.name] for b in balls], [float(sys.argv[3])] * len(balls),
+params = Params([e[b.name] for b in balls], [float(sys.argv[3])] * len(balls),
                       [b.radius for b in balls], [b.position for b in balls],
                       [json.loads(sys.argv[4])] * len(balls))
 t_end = float(sys.argv[5])
 t2 = time.perf_counter()
 """
 _FIRST_CALL = _SETUP + r"""
-traj = estim.simulate(scene, params, t_end)
+traj = simulate(scene, params, t_end)
 jax.block_until_ready(traj)
 t3 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "first_call_s": t3 - t2}))
 """
 # The same first call under jit, by stages (JAX's ahead-of-time API): where its time goes.
 _FIRST_CALL_PARTS = _SETUP + r"""
-f = jax.jit(lambda p: estim.simulate(scene, p, t_end))
+f = jax.jit(lambda p: simulate(scene, p, t_end))
 traced = f.trace(params)
 t3 = time.perf_counter()
 lowered = traced.lower()
@@ -72,8 +83,6 @@ print(json.dumps({"trace_s": t3 - t2, "lower_s": t4 - t3, "compile_s": t5 - t4, 
 
 
 def _median_us(fn, arg, repeats: int, warmup: int = 3) -> float:
-    import jax
-
     for _ in range(warmup):
         jax.block_until_ready(fn(arg))
     times = []
@@ -139,20 +148,15 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         _first_call(scene_path, cache)
         first_cached = _first_call(scene_path, cache)
 
-    import jax
-    import jax.numpy as jnp
-
-    import estim
-
-    scene = estim.load_scene(scene_path)
+    scene = load_scene(scene_path)
     t_end = SEED["t_end"]
     three = seed_params(scene)
 
     # Forward: 3 balls in one batched call. Jitted wrapper (what a user's jitted code
     # pays) and the plain call (adds estim's eager argument checks).
-    forward = jax.jit(lambda p: estim.simulate(scene, p, t_end))
+    forward = jax.jit(lambda p: simulate(scene, p, t_end))
     forward_us = _median_us(forward, three, repeats)
-    eager_us = _median_us(lambda p: estim.simulate(scene, p, t_end), three, max(repeats // 4, 3))
+    eager_us = _median_us(lambda p: simulate(scene, p, t_end), three, max(repeats // 4, 3))
     # Its floor: a jitted function with the same arguments and results that computes
     # nothing (JAX's dispatch and argument handling, and a buffer for each result).
     shapes = jax.eval_shape(forward, three)
@@ -167,9 +171,9 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
 
     def final_x(theta, keep):
         e, mu_t, vx0 = theta
-        p = estim.Params(e, mu_t, golf.radius, jnp.asarray(golf.position),
+        p = Params(e, mu_t, golf.radius, jnp.asarray(golf.position),
                          jnp.stack([vx0, jnp.asarray(vel[1]), jnp.asarray(vel[2])]))
-        return estim.simulate(scene, p, t_end, keep=keep).final.position[0]
+        return simulate(scene, p, t_end, keep=keep).final.position[0]
 
     grad = jax.jit(jax.jacfwd(lambda theta: final_x(theta, ())))
     theta = jnp.array([SEED["e"]["golf"], SEED["mu_t"], vel[0]])
@@ -186,11 +190,11 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     # timed beside it (docs/pages/speed.md).
     rng = np.random.default_rng(seed)
     e_batch = rng.uniform(0.3, 0.95, size=batch)
-    many = estim.Params(e_batch, SEED["mu_t"], golf.radius, golf.position, vel)
+    many = Params(e_batch, SEED["mu_t"], golf.radius, golf.position, vel)
     batch_us, row_bytes = {}, {}
     for name, keep in (("final", ()), ("events", ("events",)), ("all", None)):
         # throw=False: a ball that needs more than max_segments is counted, not raised.
-        call = jax.jit(lambda p, keep=keep: estim.simulate(scene, p, t_end, throw=False, keep=keep))
+        call = jax.jit(lambda p, keep=keep: simulate(scene, p, t_end, throw=False, keep=keep))
         batch_us[name] = _median_us(call, many, max(min(repeats, 20), 3), warmup=1)
         traj = call(many)
         row_bytes[name] = traj.record.shape[-1] * traj.record.dtype.itemsize + traj.flags.shape[-1] * traj.flags.dtype.itemsize
@@ -237,12 +241,12 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         "devices": [str(d) for d in jax.devices()],
         # Whether XLA compiles small loops into one kernel (estim._config): off when JAX's
         # backend started before estim was imported, or XLA_FLAGS set its own threshold.
-        "small_loops_as_kernels": bool(estim._config.SMALL_LOOPS_AS_KERNELS),
+        "small_loops_as_kernels": bool(_config.SMALL_LOOPS_AS_KERNELS),
         # Whether JAX runs programs on the calling thread (estim._config, DISPATCH).
-        "sync_dispatch": bool(estim._config.dispatch_is_sync()),
-        # Whether the closed-form primal ran on the native kernels (estim._native): built at
+        "sync_dispatch": bool(_config.dispatch_is_sync()),
+        # Whether the closed-form primal ran on the native kernels (estim.forward._native): built at
         # install, not switched off with ESTIM_NATIVE=0, and JAX's backend is the CPU.
-        "native": bool(estim._native.active()),
+        "native": bool(_native.active()),
     }
     return result
 
@@ -266,7 +270,7 @@ def format_speed(r: dict) -> str:
         + ", ".join(f"{k[:-2]} {v:.3f} s" for k, v in r["first_call_parts_s"].items()),
         f"forward floor (a jitted call with the same arguments and results, computing nothing): "
         f"{r['forward_floor_us']:.1f} us/call",
-        f"forward without jit (estim.simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
+        f"forward without jit (simulate, eager checks): {r['forward_eager_us']:.1f} us/call",
         f"gradient keeping every part (keep=None): {r['gradient_all_us']:.1f} us/call",
         f"batch of {r['batch']}, final states (keep=()): {r['batch_final_us']:.0f} us/call, "
         f"{r['batch_row_bytes']['final']} bytes per ball ({r['batch_incomplete']} balls incomplete within max_segments); "
@@ -307,7 +311,6 @@ def _cli_fit_seconds(tracks: str, scene_path: str, out: str, env: dict) -> float
 def run_fit_bench(*, repeats: int = 5, scene_path: str | None = None) -> dict:
     """``estim fit`` on the bundled tracks from process start to written fit.json, without
     and with a warm compilation cache, and the steady-state (compiled) fit in-process."""
-    from ._demo import DEMO_TRACKS
 
     scene_path = scene_path or default_scene_path()
     tracks = str(DEMO_TRACKS)
@@ -318,11 +321,7 @@ def run_fit_bench(*, repeats: int = 5, scene_path: str | None = None) -> dict:
         _cli_fit_seconds(tracks, scene_path, os.path.join(tmp, "fill"), warm_env)
         warm = _cli_fit_seconds(tracks, scene_path, os.path.join(tmp, "warm"), warm_env)
 
-    import estim
-
-    from ._job import fit_csv
-
-    scene = estim.load_scene(scene_path)
+    scene = load_scene(scene_path)
     fit_csv(tracks, scene)  # compile
     times = []
     for _ in range(max(repeats, 1)):
@@ -360,7 +359,7 @@ ACCURACY_CHECK = ("Tsit5", 1e-13)
 QUICK_SOLVERS = ("Tsit5",)
 QUICK_RTOLS = (1e-4, 1e-8)
 QUICK_REFERENCE = ("Tsit5", 1e-12)
-# estim's defaults (estim.simulate) and the other settings measured around them.
+# estim's defaults (simulate) and the other settings measured around them.
 DEFAULT_SETTING = {"solver": "Tsit5", "rtol": 1e-8, "atol": 1e-9, "contact_slack": 1e-6, "max_steps": 2048}
 SLACKS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
 SMALL_MAX_STEPS = 512
@@ -374,7 +373,7 @@ def default_docs_dir() -> str:
     """docs/pages of the checkout estim runs from, else ``docs/pages`` here."""
     from pathlib import Path
 
-    pages = Path(__file__).resolve().parent.parent / "docs" / "pages"
+    pages = Path(__file__).resolve().parents[2] / "docs" / "pages"
     return str(pages) if pages.is_dir() else os.path.join("docs", "pages")
 
 
@@ -382,28 +381,19 @@ def _programs(scene, params, t_end, ts):
     """The compiled programs of the study for one scene and its three balls: forward
     (three balls) and the reverse-mode gradient of the golf ball's final x w.r.t. (e,
     mu_t, vx0), on either path (``settings=None``: the closed form). They call the solvers
-    behind ``estim.simulate`` directly, because ``simulate`` checks its tolerances in
+    behind ``simulate`` directly, because ``simulate`` checks its tolerances in
     Python (they cannot be traced through it); here the tolerances and the slack are
     traced, so one program per path and solver class serves every setting."""
-    import jax
-    import jax.numpy as jnp
-
-    import estim
-
-    from . import _native
-    from ._simulate import _simulate, _simulate_ode
-    from ._trajectory import check_keep
-
     golf = jax.tree.map(lambda x: x[1], params)  # the seed order: bocce, golf, pingpong
     everything = check_keep(None)
 
     def solve(prm, settings):
         if settings is None:
-            return _simulate(scene, prm, t_end, ts, 48, MAX_EVENTS, False, everything, _native.active())
-        return _simulate_ode(scene, prm, t_end, ts, settings, MAX_EVENTS, False, everything)
+            return solve_closed_form(scene, prm, t_end, ts, 48, MAX_EVENTS, False, everything, _native.active())
+        return solve_ode(scene, prm, t_end, ts, settings, MAX_EVENTS, False, everything)
 
     def final_x(theta, settings):
-        prm = estim.Params(theta[0], theta[1], golf.radius, golf.position,
+        prm = Params(theta[0], theta[1], golf.radius, golf.position,
                            golf.velocity.at[0].set(theta[2]), mass=golf.mass,
                            drag_coefficient=golf.drag_coefficient, spin=golf.spin)
         return solve(prm, settings).final.position[0]
@@ -415,11 +405,6 @@ def _programs(scene, params, t_end, ts):
 
 
 def _settings(solver: str, rtol: float, slack: float = 1e-6, max_steps: int = 2048):
-    import diffrax
-    import jax.numpy as jnp
-
-    from ._ode import OdeSettings
-
     return OdeSettings(getattr(diffrax, solver)(), jnp.asarray(rtol), jnp.asarray(rtol * ATOL_RATIO),
                        jnp.asarray(slack), int(max_steps))
 
@@ -455,11 +440,6 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
     taken within one run), and accepted steps. Full mode also varies the contact slack and
     ``max_steps`` around estim's default.
     """
-    import jax
-    import jax.numpy as jnp
-
-    import estim
-
     say = say or (lambda msg: None)
     solvers_arg, rtols_arg, reference_arg, slacks_arg = solvers, rtols, reference, slacks
     solvers = tuple(solvers or (QUICK_SOLVERS if quick else ACCURACY_SOLVERS))
@@ -521,11 +501,11 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
     custom = any(x is not None for x in (solvers_arg, rtols_arg, reference_arg, slacks_arg))
     command = "estim bench accuracy" + (" --quick" if quick else "")
     result = {"repeats": int(repeats), "quick": bool(quick), "t_end": float(t_end),
-              "command": f"estim._bench.run_accuracy(...) (custom settings, quick={quick})" if custom else command,
+              "command": f"estim.app._bench.run_accuracy(...) (custom settings, quick={quick})" if custom else command,
               "balls": list(SEED["e"]), "atol_ratio": ATOL_RATIO, "default": dict(DEFAULT_SETTING)}
 
     # (a) Vacuum: the closed form against the ODE path forced on.
-    vacuum = estim.load_scene(os.path.join(scenes_dir, "stairs.xml"))
+    vacuum = load_scene(os.path.join(scenes_dir, "stairs.xml"))
     programs = _programs(vacuum, seed_params(vacuum), t_end, ts)
     runs = {("closed form", None): measure(programs, None, "vacuum, closed form")}
     for solver in solvers:
@@ -542,7 +522,7 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
     }
 
     # (b) Still air: the solvers against a high-precision reference.
-    air = estim.load_scene(os.path.join(scenes_dir, "stairs_air.xml"))
+    air = load_scene(os.path.join(scenes_dir, "stairs_air.xml"))
     programs = _programs(air, seed_params(air), t_end, ts)
     ref = measure(programs, _settings(*reference), f"air, reference {reference[0]} rtol {reference[1]:g}")
     runs = {}

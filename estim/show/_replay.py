@@ -41,9 +41,11 @@ if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.env
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ._params import Params  # noqa: E402
-from ._scene import Scene, load_scene  # noqa: E402
-from ._simulate import simulate  # noqa: E402
+from ..forward._simulate import simulate  # noqa: E402
+from ..model._params import Params  # noqa: E402
+from ..model._scene import Scene, load_scene, scene_from_model  # noqa: E402
+from ..tracks._tracks import Tracks, read_tracks_csv  # noqa: E402
+from ._plots import COLOURS  # noqa: E402
 
 __all__ = [
     "EncoderNotFoundError",
@@ -156,7 +158,6 @@ def _read_fit(fit) -> dict[str, dict]:
 
 
 def _read_tracks(tracks, scene: Scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    from ._tracks import Tracks, read_tracks_csv
 
     if isinstance(tracks, (str, os.PathLike)):
         tracks = read_tracks_csv(tracks, scene=scene)
@@ -378,7 +379,6 @@ def _as_model(model) -> mujoco.MjModel:
 
 def _estim_scene(scene, model: mujoco.MjModel) -> Scene:
     """estim's scene for an MJCF path or a compiled model (the file MuJoCo renders)."""
-    from ._scene import scene_from_model
 
     if isinstance(scene, (str, os.PathLike)):
         return load_scene(scene)
@@ -392,9 +392,8 @@ def _rgb(colour) -> np.ndarray:
 
 
 def ball_colours(model, balls: Iterable[str]) -> dict[str, np.ndarray]:
-    """RGB in [0, 1] per ball: the plots' colours (``estim._plots.COLOURS``), else the
+    """RGB in [0, 1] per ball: the plots' colours (``estim.show._plots.COLOURS``), else the
     scene's rgba of the ball's geom, so the replay, the side view and the plots agree."""
-    from ._plots import COLOURS
 
     model = _as_model(model)
     out = {}

@@ -16,7 +16,7 @@ Summing the flights gives the start of flight j (time, tangential displacement):
     L_j = sum_{i<j} e^i K_i = (G(e mu, j) - G(e^2, j)) / (mu - e),
 
 with ``G(q, j) = (1 - q^j) / (1 - q)``. On a horizontal face a_t = 0 and this is the series
-of the seed stairs (``estim._solver``, eq. (1)). For e < 1 every sum converges as j -> inf:
+of the seed stairs (``estim.forward._solver``, eq. (1)). For e < 1 every sum converges as j -> inf:
 the series accumulates at ``T0 / (1 - e)`` (Zeno) with tangential velocity
 ``u_inf = u + a_t T0 / (1 - e)`` if mu = 1 and 0 otherwise.
 

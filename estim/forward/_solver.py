@@ -4,7 +4,7 @@ The motion of a ball is a sequence of *segments*, each in closed form:
 
 - ``FLIGHT``: a parabola ``p + v tau + a tau^2 / 2`` ending at a contact or at ``t_end``;
 - ``TRAIN``: a whole series of bounces on one face (any supporting face in general,
-  ``estim._train``; here the horizontal case). After a bounce with
+  ``estim.forward._train``; here the horizontal case). After a bounce with
   post-impact horizontal velocity u and vertical speed w, flight j lasts ``T0 e^j``
   (``T0 = 2 w / g``) and carries horizontal velocity ``u mu^j``, so bounce n happens at
 
@@ -12,7 +12,7 @@ The motion of a ball is a sequence of *segments*, each in closed form:
 
   For e < 1 the series accumulates at ``t_0 + T0 / (1 - e)`` (Zeno): infinitely many
   bounces in finite time, summed exactly. A train continues as long as the ball provably
-  lands on the same face with nothing in the way (``estim._contact.train_reach``);
+  lands on the same face with nothing in the way (``estim.forward._contact.train_reach``);
 - ``SLIDE``: motion along a face after the bounces have died out (a ball at rest is a
   slide with zero velocity); it ends where the ball slides off the face, at a wall, or at
   ``t_end``.
@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from ..model._scene import Scene
 from ._contact import (
     CENTRE,
     HALF,
@@ -58,7 +59,6 @@ from ._contact import (
     train_reach,
 )
 from ._scan import scan_used
-from ._scene import Scene
 from ._train import series, series_end, state_at
 
 # Segment kinds.
@@ -92,7 +92,7 @@ class Segment(eqx.Module):
 
 
 def contact_velocity(v, n, a, e, mu_t):
-    """Velocity after touching a face of normal n (eq. (3) of ``estim._contact``).
+    """Velocity after touching a face of normal n (eq. (3) of ``estim.forward._contact``).
 
     Touching with a normal speed below ``REST_SPEED`` is not an impact: the normal
     component is dropped and nothing else changes. An impact whose rebound is below
@@ -281,7 +281,7 @@ class Plan(eqx.Module):
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """Find the discrete structure of one ball's solution (no gradients flow through this
     pass): a ``lax.while_loop`` over its segments, writing one slot of the record per
-    iteration. One ball, not a batch: ``estim._simulate`` runs it for each ball inside its
+    iteration. One ball, not a batch: ``estim.forward._simulate`` runs it for each ball inside its
     loop over balls, so that the branches of a segment (``lax.cond``) are branches."""
     scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
     g = scene.gravity
@@ -324,7 +324,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
 def replay(scene: Scene, params, t_end, decisions: Decision, n_used=None) -> Segment:
     """Recompute every segment from the structure, differentiably (a ``lax.scan`` that runs
-    only the first ``n_used`` segments, default all: ``estim._scan``)."""
+    only the first ``n_used`` segments, default all: ``estim.forward._scan``)."""
 
     faces = faces_for(scene, params.radius)
     a = jnp.array([0.0, 0.0, -1.0]) * scene.gravity
@@ -356,7 +356,7 @@ def segments_of(scene: Scene, params, t_end, decisions: Decision, planned: Segme
     The forward pass reuses the values ``plan`` already computed; only derivatives run
     ``replay`` (forward mode directly, reverse mode through JAX's transpose of it), over
     the first ``n_used`` segments (at least the plan's ``n_segments``; one number for a
-    whole batch makes the rest free, ``estim._scan``).
+    whole batch makes the rest free, ``estim.forward._scan``).
     """
     return planned
 

@@ -10,7 +10,7 @@ of the used slots plus at most one chunk, and ``S / C`` branch decisions.
 The skip is a real branch only where the number of used slots is one number for the whole
 batch: inside ``vmap`` a per-ball count turns ``cond`` into ``select``, which runs both
 branches (correct, no saving). So the ODE path plans all balls first and passes the batch's
-largest count; the closed-form path simulates one ball at a time (``estim._simulate``) and
+largest count; the closed-form path simulates one ball at a time (``estim.forward._simulate``) and
 passes the ball's own. The scan stays a scan, so reverse mode works as before.
 """
 

@@ -2,16 +2,16 @@
 
 The pipeline, per ball (all balls of a data set run together, batched with ``vmap``):
 
-1. **Start from the data** (``estim._initial``): split the track into flights, read e, mu_t,
+1. **Start from the data** (``estim.fitting._initial``): split the track into flights, read e, mu_t,
    vx0 and the release point off them. The loss is rough in the parameters (a bounce moving
    onto the next tread changes the rest of the trajectory), so starting close matters more
    than any optimiser.
 2. **Grow the time window**: fit the data up to the third resolved bounce first, then all.
-3. **Minimise a robust loss** ``sum rho(r / s)`` (``estim._loss``) in unconstrained
+3. **Minimise a robust loss** ``sum rho(r / s)`` (``estim.fitting._loss``) in unconstrained
    coordinates (``e = sigmoid(a)``, ``mu_t = sigmoid(b)``: constraints by
    reparametrisation, never by clipping) with Levenberg-Marquardt on the iteratively
    reweighted residuals, written as an optax gradient transformation
-   (``estim._levenberg_marquardt``). With a handful of parameters per ball, the Jacobian
+   (``estim.fitting._levenberg_marquardt``). With a handful of parameters per ball, the Jacobian
    comes from forward-mode autodiff (``jax.jacfwd``) in the same pass as the residuals, one
    simulation per iteration; near the optimum the method converges quadratically.
 4. **Check the noise floor**: the rms residual of the inliers must match the noise level
@@ -39,19 +39,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import FIT_COMPILE, jit, require_x64
+from .._config import FIT_COMPILE, jit, require_x64
+from ..forward._balls import check_outside
+from ..forward._native import active_plan
+from ..forward._ode import OdeSettings
+from ..forward._ode import finish as ode_finish
+from ..forward._ode import plan as ode_plan
+from ..forward._solver import segments_of
+from ..forward._trajectory import IMPACT, list_events, sample
+from ..model._params import DRAG_COEFFICIENT, Params
+from ..model._scene import Scene
+from ..tracks._tracks import check_units
 from ._initial import MU_DEFAULT, MU_RANGE, Initial, initial_guess
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, array_namespace, robust_loss, robust_weight
-from ._native import active_plan
-from ._ode import OdeSettings
-from ._ode import finish as ode_finish
-from ._ode import plan as ode_plan
-from ._params import DRAG_COEFFICIENT, Params
-from ._scene import Scene
-from ._solver import segments_of
-from ._tracks import check_units
-from ._trajectory import IMPACT, list_events, sample
 
 __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
 
@@ -251,6 +252,26 @@ class FitResult:
     def to_json(self) -> dict:
         return {"source": self.source, "balls": {k: v.to_json() for k, v in self.balls.items()}}
 
+    def format_table(self) -> str:
+        """One row per ball: e, mu_t, vx0 with standard errors, rms, samples, bounces, status."""
+
+        def pm(bf, name):
+            v, s = bf.values[name], bf.stderr.get(name, math.nan)
+            return f"{v:.4f} +- {s:.4f}" if math.isfinite(s) else f"{v:.4f} (n/a)"
+
+        head = f"{'ball':<10} {'e':>17} {'mu_t':>17} {'vx0 (m/s)':>17} {'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
+        rows = [head, "-" * len(head)]
+        for ball, bf in self.balls.items():
+            status = "converged" if bf.converged else "NOT converged"
+            if not bf.at_noise_floor:
+                status += ", above noise floor"
+            rows.append(
+                f"{ball:<10} {pm(bf, 'e'):>17} {pm(bf, 'mu_t'):>17} {pm(bf, 'vx0'):>17} "
+                f"{bf.rms_m * 1e3:9.2f} {bf.n_obs:5d} {bf.n_bounces:7d}  {status}"
+            )
+            rows.extend(f"{'':<10} note: {n}" for n in bf.notes)
+        return "\n".join(rows)
+
 
 def fit(
     scene: Scene,
@@ -288,7 +309,7 @@ def fit(
             problem: times not finite or not strictly increasing, infinite positions (NaN
             marks a lost detection), fewer than 8 samples, a track that does not fall with
             the scene's gravity between bounces (not metres and seconds:
-            ``estim._tracks.check_units``), fixed values that are not finite, e or mu_t
+            ``estim.tracks._tracks.check_units``), fixed values that are not finite, e or mu_t
             outside [0, 1], a fixed release point inside a solid, a ball of radius <= 0.
         KeyError: a ball the scene does not have.
     """
@@ -446,8 +467,6 @@ def _check_inputs(scene, data, fixed) -> None:
     """Reject data and fixed values that fit cannot use, naming the ball and the problem:
     nothing is dropped, clipped, reordered or rescaled silently. NaN in a position is a lost
     detection (masked); anything else must be finite."""
-    from ._simulate import _check_outside
-
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be an estim.Scene (estim.load_scene), got {type(scene).__name__}")
     if not isinstance(data, dict):
@@ -473,7 +492,7 @@ def _check_inputs(scene, data, fixed) -> None:
             raise ValueError(f"ball {b!r}: t[{bad[0]}] = {float(t[bad[0]])!r} is not a finite "
                              "time (s)")
         # Times of the rows with data must increase strictly (rows without any coordinate,
-        # such as the padding of estim._job.fit_pixels, carry no data and are masked).
+        # such as the padding of estim.fitting._job.fit_pixels, carry no data and are masked).
         rows = np.flatnonzero(np.any(np.isfinite(pos), axis=1))
         bad = np.flatnonzero(np.diff(t[rows]) <= 0)
         if bad.size:
@@ -516,7 +535,7 @@ def _check_inputs(scene, data, fixed) -> None:
             y0 = float(values.get("y0", spec.position[1]))
             release = (float(values["x0"]), y0, float(values["z0"]))
             try:
-                _check_outside(scene, Params(0.5, 0.5, spec.radius, release, (0.0, 0.0, 0.0)))
+                check_outside(scene, Params(0.5, 0.5, spec.radius, release, (0.0, 0.0, 0.0)))
             except ValueError as err:
                 raise ValueError(f"fixed release point of ball {b!r}: {err}") from None
 
@@ -591,7 +610,7 @@ def _run(scene, free, loss, steps, max_segments, theta, batch):
 
     def step(carry, _):
         # Plan every ball first: the replays then run only as many slots as the longest
-        # solution of the batch uses (estim._scan).
+        # solution of the batch uses (estim.forward._scan).
         at = lambda th, pr: _plan_at(scene, _to_physical(th, free, pr.fixed), pr, max_segments)  # noqa: E731
         plans, used = jax.vmap(at)(carry[0], batch)
         n_used = jnp.max(used)

@@ -1,4 +1,4 @@
-"""The event-driven ODE solver, for scenes where the air acts (``estim._effects``).
+"""The event-driven ODE solver, for scenes where the air acts (``estim.model._air``).
 
 With drag or Magnus forces a flight has no closed form; it is integrated with a diffrax
 Runge-Kutta solver (``Tsit5`` by default) under an error-controlled step size. Contacts are
@@ -6,7 +6,7 @@ found without ever stepping over one:
 
 1. *Prediction.* At the start of a step, the ball's path is approximated by the parabola of
    its current acceleration a0, ``q(tau) = p + v tau + a0 tau^2 / 2``, and the exact
-   closed-form contact search of the gravity-only solver (``estim._contact.first_contact``,
+   closed-form contact search of the gravity-only solver (``estim.forward._contact.first_contact``,
    ``slide_exit_time``) gives the first face it enters, and when.
 2. *A step bound.* A step is accepted only if the integrated end point lies within
    ``SLACK`` (1 micrometre) of that parabola. Since the distance between the true path
@@ -18,13 +18,13 @@ found without ever stepping over one:
    step, the step is shortened to the event: a Newton iteration solves
    ``G(tau) = n . q_RK(tau) - H = 0`` where ``q_RK(tau)`` is the solver's own step of length
    tau from the step start and (n, H) the face plane (or the edge bound). The reset of
-   ``estim._contact`` then applies.
+   ``estim.forward._contact`` then applies.
 
 Zeno series carry over: after a bounce on a face that supports the ball, if the rest of the
 bounce series (gravity only) lasts less than ``sqrt(2 SLACK / |a_air|)`` (so neglecting the
 air over it moves the ball by less than ``SLACK``), lands on the same face and meets no
 other solid (the slab test ``train_reach`` on an upward face, the box test
-``series_clear`` on an inclined one), it is summed in closed form (``estim._train``) and
+``series_clear`` on an inclined one), it is summed in closed form (``estim.forward._train``) and
 the ball rests or slides on the face (with the air acting along it); it flies again when
 it slides off an edge. A series still bouncing at ``t_end`` (always so for e = 1) is summed
 up to ``t_end`` under the same conditions. In a vacuum (the ODE path forced on a
@@ -32,7 +32,7 @@ gravity-only scene) every such series is summed, as in the closed-form solver, a
 bounces are listed as events as there (those whose flight lasts at least 1 us, then a
 settle event). Events and compute stay bounded by ``max_steps``.
 
-Gradients: as in ``estim._solver``, a ``plan`` pass (``lax.while_loop``, no gradients)
+Gradients: as in ``estim.forward._solver``, a ``plan`` pass (``lax.while_loop``, no gradients)
 finds the discrete structure and the accepted step sizes; a ``replay`` pass (``lax.scan``)
 recomputes every step differentiably with the same step sizes (discretise-then-
 differentiate: exact derivatives of the computed solution), each event time by one Newton
@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from ..model._air import acceleration
 from ._contact import (
     CENTRE,
     DIRECTION,
@@ -65,7 +66,6 @@ from ._contact import (
     slide_exit_time,
     train_reach,
 )
-from ._effects import acceleration
 from ._scan import scan_used
 from ._solver import contact_velocity
 from ._train import bounce, series, series_end, state_at
@@ -153,7 +153,7 @@ def _rk_step(settings, f, t, h, y, args):
 
 def _edge_bounds(row):
     """The edge bounds of a box face as guards ``sigma_i (q_i - c_i) + beta_i >= 0``, two
-    per axis (index ``2 * axis + side``), as in ``estim._contact.slide_exit_time``: along
+    per axis (index ``2 * axis + side``), as in ``estim.forward._contact.slide_exit_time``: along
     an axis where the face direction m is 0, ``-h <= q_i - c_i <= h``; where m_i != 0,
     ``m_i (q_i - c_i) >= h_i`` (the second slot unused, beta = inf)."""
     m, h = row[DIRECTION], row[HALF]
@@ -209,7 +209,7 @@ def _zeno(faces: Faces, gravity, air, params, face, p, v, slack, t_left, cut=Non
     its duration, displacement and final velocity. ``cut`` given (replay): as plan decided.
 
     A series that does not accumulate before ``t_end`` (e = 1 never does) is summed up to
-    ``t_end``: bounce j starts at ``T0 (1 - e^j) / (1 - e)`` (``estim._train``), so the
+    ``t_end``: bounce j starts at ``T0 (1 - e^j) / (1 - e)`` (``estim.forward._train``), so the
     state at ``t_left`` is that of the flight in progress then, in closed form, as on the
     closed-form path. Stepping it bounce by bounce instead costs a step per bounce (an
     e = 1 ball with a 0.2 us period would need 10^7) and lets rounding accumulate in the
@@ -250,7 +250,7 @@ def _zeno_allowed(faces, gravity, air, params, f, n, p, v, w, s, duration, trave
     # point), and the ball's place over the face at the end (a cut series ends in flight:
     # its tangential displacement). On an upward face the landing points move monotonically
     # along u, so these bound them all; on an inclined face this is the closed form's check
-    # too (``estim._solver``).
+    # too (``estim.forward._solver``).
     j_last = jnp.minimum(geometric_count(e, duration / s.period), 2.0**52)
     _, x_last, _ = series_end(s, j_last, e, mu_t)
     along = travel - jnp.dot(travel, s.normal) * s.normal
@@ -389,7 +389,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
 
 def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None) -> Node:
     """Recompute every accepted step differentiably (a ``lax.scan`` that runs only the
-    first ``n_used`` steps, default all: ``estim._scan``)."""
+    first ``n_used`` steps, default all: ``estim.forward._scan``)."""
     faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
     f = _vector_field(air, g, params)
     g_vec = jnp.array([0.0, 0.0, -1.0]) * g
@@ -442,7 +442,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         a = f(y, (jnp.zeros(3), jnp.bool_(False)))[3:]
         return Node(t, y[:3], y[3:], a, t, y[:3], y[3:], a, y[3:])
 
-    # 0 * e, not a constant, for a single trace of the body (see estim._solver.replay).
+    # 0 * e, not a constant, for a single trace of the body (see estim.forward._solver.replay).
     init = (0.0 * params.e, jnp.concatenate([params.position, params.velocity]))
     none = jnp.int32(-1)
     unused = Step(jnp.int32(UNUSED), jnp.int32(FLY), none, none, jnp.int32(0), jnp.float64(0.0))
@@ -482,7 +482,7 @@ def sample(nodes: Node, steps: Step, faces_normal_of, e, mu_t, g, t):
     d21 = 0.5 * (3 * s2 - 8 * s3 + 5 * s4)
     vel = (d00 * nd.p0 + d10 * hh * nd.v0 + d20 * hh**2 * nd.a0 + d01 * nd.p1 + d11 * hh * nd.v1 + d21 * hh**2 * nd.a1) / hh
 
-    # Inside a Zeno series: the closed form of estim._train.
+    # Inside a Zeno series: the closed form of estim.forward._train.
     zeno = (steps.kind[k] == ZENO)
     a = jnp.array([0.0, 0.0, -1.0]) * g
 
@@ -541,10 +541,10 @@ class OdeSolution(AbstractSolution):
 
 
 def list_events(nodes: Node, steps: Step, normals, e, mu_t, g, max_events: int) -> Events:
-    """The contact events of one ball, as on the closed-form path (``estim._trajectory``):
+    """The contact events of one ball, as on the closed-form path (``estim.forward._trajectory``):
     every CONTACT step; for a summed series (ZENO) its bounces whose flight lasts at least
     ``LISTED_FLIGHT`` (all of them before ``t_end`` for e = 1), each from the closed form
-    of ``estim._train``, then a settle event (``REST``) where it accumulates (none for a
+    of ``estim.forward._train``, then a settle event (``REST``) where it accumulates (none for a
     series cut at ``t_end``)."""
     zeno = steps.kind == ZENO
     contact = steps.kind == CONTACT

@@ -9,14 +9,15 @@ comes from one ``numpy.random.Generator(seed)``, so a seed reproduces the data e
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
+from ..forward._simulate import simulate
+from ..model._params import Params
+from ..model._scene import Scene
 from ._tracks import Tracks
-
-if TYPE_CHECKING:
-    from ._scene import Scene
 
 __all__ = ["SyntheticDetails", "synthesize_tracks", "frame_times"]
 
@@ -83,11 +84,6 @@ def synthesize_tracks(
     Returns:
         :class:`Tracks` (or ``(Tracks, SyntheticDetails)``).
     """
-    import jax.numpy as jnp
-
-    from ._params import Params
-    from ._simulate import simulate
-
     balls = tuple(truth)
     if not balls:
         raise ValueError("truth names no balls")

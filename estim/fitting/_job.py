@@ -1,70 +1,20 @@
-"""The fit job behind ``estim fit`` and ``estim demo``: read, fit, report, plot."""
+"""The fit jobs behind ``estim fit`` and ``estim demo``: read a file, fit it."""
 
 from __future__ import annotations
 
-import math
 import os
-import sys
-import time
 
 import numpy as np
 
-from ._fit import FitResult, fit
-from ._initial import split_flights
-from ._json import dump
-from ._scene import Scene, load_scene
-from ._tracks import (
+from ..model._scene import Scene, load_scene
+from ..tracks._tracks import (
     estimate_pixel_scale,
     estimate_surface_row,
     read_pixel_track,
     read_tracks_csv,
 )
-
-
-def _progress(stream=None):
-    start = time.perf_counter()
-
-    def say(msg: str) -> None:
-        print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=stream or sys.stderr, flush=True)
-
-    return say
-
-
-def format_table(result: FitResult) -> str:
-    """One row per ball: e, mu_t, vx0 with standard errors, rms, samples, bounces, status."""
-
-    def pm(bf, name):
-        v, s = bf.values[name], bf.stderr.get(name, math.nan)
-        return f"{v:.4f} +- {s:.4f}" if math.isfinite(s) else f"{v:.4f} (n/a)"
-
-    head = f"{'ball':<10} {'e':>17} {'mu_t':>17} {'vx0 (m/s)':>17} {'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
-    rows = [head, "-" * len(head)]
-    for ball, bf in result.balls.items():
-        status = "converged" if bf.converged else "NOT converged"
-        if not bf.at_noise_floor:
-            status += ", above noise floor"
-        rows.append(
-            f"{ball:<10} {pm(bf, 'e'):>17} {pm(bf, 'mu_t'):>17} {pm(bf, 'vx0'):>17} "
-            f"{bf.rms_m * 1e3:9.2f} {bf.n_obs:5d} {bf.n_bounces:7d}  {status}"
-        )
-        rows.extend(f"{'':<10} note: {n}" for n in bf.notes)
-    return "\n".join(rows)
-
-
-def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = None) -> dict:
-    """fit.json and the plots (fit.png, residuals.png, loss.png) into ``out_dir``."""
-    from ._plots import plot_fit, plot_loss_history, plot_residuals
-
-    os.makedirs(out_dir, exist_ok=True)
-    payload = result.to_json()
-    payload.update(extra or {})
-    with open(os.path.join(out_dir, "fit.json"), "w") as f:
-        dump(payload, f, indent=2)
-    plot_fit(data, result, os.path.join(out_dir, "fit.png"))
-    plot_residuals(data, result, os.path.join(out_dir, "residuals.png"))
-    plot_loss_history(result, os.path.join(out_dir, "loss.png"))
-    return payload
-
+from ._fit import fit
+from ._initial import initial_guess, split_flights
 
 # A drop filmed from the side starts with an unknown vertical speed.
 PIXEL_FREE = ("e", "mu_t", "vx0", "vz0", "x0", "z0")
@@ -155,8 +105,6 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
         say(f"release at frame {release}: the {release} frames before it are not fitted")
     t, pos = t[release:], pos[release:]
     if from_bounce:
-        from ._initial import initial_guess
-
         bounces = initial_guess(t, np.nan_to_num(pos[:, 0]), pos[:, 2], float(scene.gravity)).bounces
         if len(bounces) < from_bounce:
             raise ValueError(f"{path}: only {len(bounces)} bounces resolved, cannot start after bounce {from_bounce}")

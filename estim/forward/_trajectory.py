@@ -67,7 +67,7 @@ class AbstractSolution(eqx.Module):
 
 
 class ClosedFormSolution(AbstractSolution):
-    """The exact piecewise closed-form solution (gravity only, ``estim._solver``).
+    """The exact piecewise closed-form solution (gravity only, ``estim.forward._solver``).
 
     Attributes:
         segments: the segments (flights, bounce series, slides) per ball.
@@ -122,7 +122,7 @@ class Trajectory(eqx.Module):
 
     Every attribute is a view of three arrays: ``record`` (the numbers of each ball in one
     row) and ``flags`` (its integers and flags), laid out by the static ``layout``
-    (``estim._record``), and ``clock`` (the sample times, then g). A jitted function hands
+    (``estim.forward._record``), and ``clock`` (the sample times, then g). A jitted function hands
     back every array of its result as a buffer of its own, at about 1.5 us each on the
     CPU: packed, a trajectory is 3 arrays instead of 32, and the seed's forward call takes
     about half the time (docs/pages/speed.md). Build one with :meth:`Trajectory.pack`, or
@@ -379,7 +379,7 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
     """``list_events`` slot by slot, doing the work of the used segments and the listed
     events only (a ``lax.scan`` whose unused items skip their work with ``lax.cond``).
 
-    For a ball in a loop compiled as one kernel (``estim._simulate``), where nothing is
+    For a ball in a loop compiled as one kernel (``estim.forward._simulate``), where nothing is
     vectorised and every slot costs its closed forms: the seed's balls list 9, 6 and 4 of
     64 events. Under ``vmap`` the skips become selects and both branches run: there use
     ``list_events``. The same closed forms (``_listed``, ``_event``), so the same values (to

@@ -13,8 +13,8 @@ import os
 import numpy as np
 from matplotlib.figure import Figure
 
-from ._fit import FitResult
-from ._trajectory import IMPACT, REST
+from ..fitting._fit import FitResult
+from ..forward._trajectory import IMPACT, REST
 
 __all__ = ["COLOURS", "plot_energy", "plot_fit", "plot_heights", "plot_loss_history",
            "plot_residuals"]

@@ -8,7 +8,7 @@ n and offset H, the guard
     G0 = n . p - H,   G1 = n . v,   G2 = n . a,                                (1)
 
 is the signed distance of the centre from the face plane, minus nothing: H already contains
-the radius (see ``estim._scene``). The ball *enters* a face at a root of G where G is
+the radius (see ``estim.model._scene``). The ball *enters* a face at a root of G where G is
 decreasing, ``G'(tau) = G1 + G2 tau < 0``. With ``s = sqrt(G1^2 - 2 G2 G0)`` the two roots
 have ``G' = +-s``, so the entering one is
 
@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._scene import Scene
+from ..model._scene import Scene
 
 # Positions are metres of order 1-10, so rounding is ~1e-15 m; a face counts as touched
 # within POSITION_TOL and a normal speed below SPEED_TOL counts as zero.
@@ -205,7 +205,7 @@ def ballistic(p, v, a, tau):
 
 def on_face(q, centre, half, radius) -> Bool[Array, "*f"]:
     """Whether a point on a face's plane lies on the face: inside the grown box, eq. (1)
-    of ``estim._scene``, to within ``ON_FACE_TOL``."""
+    of ``estim.model._scene``, to within ``ON_FACE_TOL``."""
     excess = jnp.maximum(jnp.abs(q - centre) - half, 0.0)
     return jnp.sum(excess, axis=-1) <= radius + ON_FACE_TOL
 

@@ -1,8 +1,8 @@
 """Forces of the air on a ball in flight: quadratic drag, linear (viscous) drag, wind, Magnus.
 
 A scene asks for air with MuJoCo's ``<option density=... viscosity=... wind=...>`` (see
-``estim._scene``); a scene without it has none of these forces and is solved in closed form
-(``estim._solver``). With air, the acceleration of a ball of radius r, mass m, velocity v and
+``estim.model._scene``); a scene without it has none of these forces and is solved in closed form
+(``estim.forward._solver``). With air, the acceleration of a ball of radius r, mass m, velocity v and
 angular velocity omega (``Params.spin``) is
 
     a = g + a_quad + a_lin + a_magnus,     w = v - wind (velocity relative to the air),

@@ -1,6 +1,6 @@
 """The replay as a matplotlib side view (the XZ plane), for machines without OpenGL.
 
-The same content as the MuJoCo replay (``estim._replay``): the scene's boxes as seen from
+The same content as the MuJoCo replay (``estim.show._replay``): the scene's boxes as seen from
 -y, the fitted balls as solid discs, the measured sample of each ball at the frame as a
 translucent halo of the same colour (1.3 times the radius), the samples of the last
 ``trail`` seconds as dots, and the time and fitted parameters in the title and legend.
@@ -17,17 +17,19 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
+from ..model._scene import Scene, load_scene
+from ._plots import _colour
 from ._replay import (
     GHOST_ALPHA,
     GHOST_SCALE,
     TRAIL_ALPHA,
     ReplayInfo,
     ReplayMotion,
+    _rgb,
     check_output,
     replay_motion,
     write_video,
 )
-from ._scene import Scene, load_scene
 
 __all__ = ["SideView", "render_sideview"]
 
@@ -45,8 +47,6 @@ class SideView:
 
     def __init__(self, scene: Scene, motion: ReplayMotion, width: int = 640, height: int = 360,
                  *, trail: float = 0.3):
-        from ._plots import _colour
-
         self.motion, self.trail = motion, trail
         self.width, self.height = int(width), int(height)
         dpi = 100
@@ -163,8 +163,6 @@ def render_sideview(scene, fit, tracks, out, *, fps: float = 25.0, width: int = 
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     motion = replay_motion(scene, fit, tracks, fps=fps)
     view = SideView(scene, motion, width, height, trail=trail)
-    from ._plots import _colour
-    from ._replay import _rgb
 
     colours = [_rgb(_colour(b, i)) for i, b in enumerate(motion.balls)]
     n = write_video(view.frames(), out, fps, colours=colours)

@@ -1,0 +1,114 @@
+"""One ball at a time: the parameters of a batch as a flat row of balls, the loop over
+them, one ball's trajectory parts from its plan, and whether a ball stays outside every
+solid. Shared by the JAX path (``estim.forward._simulate``) and the native one
+(``estim.forward._native``)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model._params import Params
+from ..model._scene import Scene
+from ._record import layout_of, pack, unpack
+from ._solver import TRAIN, Plan, segments_of
+from ._trajectory import ClosedFormSolution, State, list_events_used, sample, trajectory_parts
+
+
+def flat_params(params: Params) -> Params:
+    """The parameters with every field broadcast to the batch and flattened to one axis of balls."""
+    batch = params.batch_shape
+
+    def flatten(x, event_shape):
+        return jnp.broadcast_to(x, batch + event_shape).reshape((-1,) + event_shape)
+
+    mass = None if params.mass is None else flatten(params.mass, ())
+    return Params(
+        flatten(params.e, ()), flatten(params.mu_t, ()), flatten(params.radius, ()),
+        flatten(params.position, (3,)), flatten(params.velocity, (3,)), mass=mass,
+        drag_coefficient=flatten(params.drag_coefficient, ()), spin=flatten(params.spin, (3,)),
+    )
+
+
+def map_balls(fn, flat: Params, *per_ball):
+    """``jax.lax.map`` of ``fn(params, *items)`` over the balls of flat parameters (and
+    of the arrays ``per_ball``, one item per ball). The parameters enter the loop as one
+    row per ball, gathered by one kernel: where the caller computes them (slices and
+    stacks of a theta under jacfwd), that is one kernel instead of one per field."""
+    layout = layout_of({"params": flat}, 1)
+    rows, _ = pack({"params": flat}, layout, (flat.e.shape[0],))
+    return jax.lax.map(lambda items: fn(unpack(items[0], None, layout, "params"), *items[1:]), (rows,) + per_ball)
+
+
+def ball_parts(scene: Scene, prm: Params, t_end, ts, pl: Plan, max_events: int, keep: frozenset[str]) -> dict:
+    """One ball's Trajectory parts from its plan (``estim.forward._trajectory.trajectory_parts``),
+    differentiably: the segments of ``pl`` with the derivatives of their replay, then the
+    samples, events, final state and dense solution that ``keep`` keeps. The JAX path runs
+    this for its primal; the native path for its tangent (``estim.forward._native``)."""
+    g = scene.gravity
+    segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
+    pos = vel = events = None  # only what keep keeps is computed
+    if "samples" in keep:
+        pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, g, ts)
+    if "events" in keep:
+        events = list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
+    last = jnp.maximum(pl.n_segments - 1, 0)
+    final = State(t_end, segments.p1[last], segments.v1_post[last])
+    solution = ClosedFormSolution(segments=segments, structure=pl.decisions, e=prm.e, mu_t=prm.mu_t, gravity=g)
+    complete = pl.complete & stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
+    return trajectory_parts(pos, vel, events, final, complete, solution, keep)
+
+
+def inside(xp, scene: Scene, p, r):
+    """Which solids balls of centres ``p (n, 3)`` and radii ``r (n,)`` start inside (deeper
+    than 1 nm): ``(n, boxes)`` and ``(n, planes)`` booleans. A box's points within r of the
+    ball's centre: the L1 excess of the centre over the box's half sizes, as in the contact
+    table (estim.model._scene, eq. (1))."""
+    c, h = xp.asarray(scene.box_centre), xp.asarray(scene.box_half)
+    depth = xp.sum(xp.maximum(xp.abs(p[:, None, :] - c[None]) - h[None], 0.0), axis=-1)
+    n, s = xp.asarray(scene.plane_normal), xp.asarray(scene.plane_offset)
+    height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim.forward._contact.inner)
+    return depth < r[:, None] - 1e-9, height < s[None] + r[:, None] - 1e-9
+
+
+def stays_outside(scene: Scene, radius, decisions, segments, n_segments):
+    """Whether the planned path keeps the ball outside every solid at the start, middle and
+    end of each segment it uses (the middle of a bounce series is not on one parabola, and
+    is not tested). A guard, not a solver: the closed forms find every contact of a
+    generic path, and this catches a degenerate one they miss (found: a flight whose apex
+    grazes a tread top 1e-12 m inside its edge, a ball sliding off an edge from 1e-12 m
+    inside it; docs/pages/hard-cases.md) so that the ball is reported incomplete instead
+    of passing through the solid."""
+    s = jax.lax.stop_gradient(segments)
+    tau = 0.5 * (s.t1 - s.t0)[:, None]
+    middle = s.p0 + s.v0 * tau + 0.5 * s.acc * tau * tau
+    middle = jnp.where((decisions.kind == TRAIN)[:, None], s.p0, middle)
+    points = jnp.stack([s.p0, middle, s.p1], axis=1).reshape(-1, 3)
+    used = jnp.repeat(jnp.arange(s.t0.shape[0]) < n_segments, 3)
+    r = jax.lax.stop_gradient(radius)
+    inside_box, inside_plane = inside(jnp, scene, points, jnp.broadcast_to(r, used.shape))
+    into = jnp.any(inside_box, axis=1) | jnp.any(inside_plane, axis=1)
+    return ~jnp.any(used & into)
+
+
+def check_outside(scene: Scene, params: Params, names=None) -> None:
+    """A ball must not start inside a solid (checked here when the values are concrete;
+    inside a user's jit by ``_input_code``). ``names``: the balls' names, for the message."""
+    leaves = (params.position, params.radius, scene.box_centre)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return
+    batch = params.batch_shape
+    p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
+    r = np.broadcast_to(np.asarray(params.radius), batch).reshape(-1)
+    inside_box, inside_plane = inside(np, scene, p, r)
+    bad = np.flatnonzero(inside_box.any(axis=1) | inside_plane.any(axis=1))
+    if bad.size:
+        i = int(bad[0])
+        hit = [scene.names[j] for j in np.flatnonzero(inside_box[i])]
+        hit += [scene.names[scene.n_boxes + j] for j in np.flatnonzero(inside_plane[i])]
+        who = f"ball {i}" if names is None else f"ball {names[i]!r}"
+        raise ValueError(
+            f"{who} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
+            f"than its radius {r[i]} to the solid (release it outside every solid)"
+        )

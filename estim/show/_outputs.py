@@ -1,0 +1,22 @@
+"""A fit's files: fit.json and its plots."""
+
+from __future__ import annotations
+
+import os
+
+from .._json import dump
+from ..fitting._fit import FitResult
+from ._plots import plot_fit, plot_loss_history, plot_residuals
+
+
+def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = None) -> dict:
+    """fit.json and the plots (fit.png, residuals.png, loss.png) into ``out_dir``."""
+    os.makedirs(out_dir, exist_ok=True)
+    payload = result.to_json()
+    payload.update(extra or {})
+    with open(os.path.join(out_dir, "fit.json"), "w") as f:
+        dump(payload, f, indent=2)
+    plot_fit(data, result, os.path.join(out_dir, "fit.png"))
+    plot_residuals(data, result, os.path.join(out_dir, "residuals.png"))
+    plot_loss_history(result, os.path.join(out_dir, "loss.png"))
+    return payload
