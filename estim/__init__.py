@@ -37,16 +37,16 @@ from .model._params import Params as Params
 from .model._scene import Ball as Ball
 from .model._scene import Scene as Scene
 from .model._scene import load_scene as load_scene
+from .tracks._csv import Tracks as Tracks
+from .tracks._csv import TracksError as TracksError
+from .tracks._csv import read_tracks_csv as read_tracks_csv
+from .tracks._csv import write_tracks_csv as write_tracks_csv
+from .tracks._pixels import PixelTrack as PixelTrack
+from .tracks._pixels import estimate_pixel_scale as estimate_pixel_scale
+from .tracks._pixels import estimate_surface_row as estimate_surface_row
+from .tracks._pixels import read_pixel_track as read_pixel_track
+from .tracks._pixels import restitution_from_flight_times as restitution_from_flight_times
 from .tracks._synthetic import synthesize_tracks as synthesize_tracks
-from .tracks._tracks import PixelTrack as PixelTrack
-from .tracks._tracks import Tracks as Tracks
-from .tracks._tracks import TracksError as TracksError
-from .tracks._tracks import estimate_pixel_scale as estimate_pixel_scale
-from .tracks._tracks import estimate_surface_row as estimate_surface_row
-from .tracks._tracks import read_pixel_track as read_pixel_track
-from .tracks._tracks import read_tracks_csv as read_tracks_csv
-from .tracks._tracks import restitution_from_flight_times as restitution_from_flight_times
-from .tracks._tracks import write_tracks_csv as write_tracks_csv
 
 __version__ = "0.1.0"
 

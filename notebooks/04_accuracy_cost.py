@@ -5,7 +5,8 @@ Run headless with ``python notebooks/04_accuracy_cost.py`` (figures go to
 ``marimo edit notebooks/04_accuracy_cost.py``. The notebook measures a small
 work-precision study on this machine (``ESTIM_NOTEBOOK_FAST=1``: one solver, Tsit5, which
 compiles six programs; otherwise Tsit5, Dopri5 and Dopri8) and, where the full study of
-``estim bench accuracy`` is committed (``docs/pages/accuracy.json``), shows it too.
+``estim bench accuracy`` is committed (``docs/pages/accuracy.json``, written by
+``docs/scripts/accuracy.py``), shows it too.
 """
 
 import marimo
@@ -378,7 +379,7 @@ def _(AIR_ROWS, DEFAULT, NOISE, PLATEAU_RTOL, choose, live, md_table, mo, np, sc
 
 @app.cell
 def _(OUT, ROOT, bench, choose, json, md_table, mo, np, sci):
-    # The full study, committed with the docs (`estim bench accuracy` writes it); it may not
+    # The full study, committed with the docs (docs/scripts/accuracy.py writes it); it may not
     # exist yet in a checkout, or come from another version of the study.
     COMMITTED_PATH = ROOT / "docs" / "pages" / "accuracy.json"
     COMMITTED = {"present": COMMITTED_PATH.is_file()}
@@ -425,15 +426,15 @@ def _(OUT, ROOT, bench, choose, json, md_table, mo, np, sci):
             _items.append(mo.md(f"""
     `docs/pages/accuracy.json` exists but this notebook cannot read it
     ({COMMITTED["error"]}): it was written by another version of the study. Rerun
-    `estim bench accuracy` to regenerate it.
+    `python docs/scripts/accuracy.py` to regenerate it.
     """))
     else:
-        print("Committed study not found: docs/pages/accuracy.json (run `estim bench accuracy`)")
+        print("Committed study not found: docs/pages/accuracy.json (run `python docs/scripts/accuracy.py`)")
         _items.append(mo.md("""
-    `docs/pages/accuracy.json` is not in this checkout yet. `estim bench accuracy` measures
-    the full study (Tsit5, Dopri5 and Dopri8 at rtol 1e-3 to 1e-12 against Dopri8 at
-    1e-13, the contact slack and `max_steps` around the default; several minutes on a
-    2-core machine) and writes it, with its table and plot, into `docs/pages/`; this
+    `docs/pages/accuracy.json` is not in this checkout yet. `python docs/scripts/accuracy.py`
+    measures the full study of `estim bench accuracy` (Tsit5, Dopri5 and Dopri8 at rtol 1e-3
+    to 1e-12 against Dopri8 at 1e-13, the contact slack and `max_steps` around the default;
+    several minutes on a 2-core machine) and writes it, with its table and plot, into `docs/pages/`; this
     section then shows it.
     """))
     mo.vstack(_items)

@@ -20,7 +20,7 @@ import pytest
 
 import estim
 from estim.app._cli import main
-from estim.tracks._tracks import TracksError, check_units, read_tracks_csv, write_tracks_csv
+from estim.tracks._csv import TracksError, check_units, read_tracks_csv, write_tracks_csv
 
 ROOT = Path(__file__).resolve().parents[1]
 STAIRS = ROOT / "data" / "scenes" / "stairs.xml"

@@ -133,6 +133,53 @@ def test_bad_inputs(capsys, args, words):
         assert word in err
 
 
+SCENES = ROOT / "data" / "scenes"
+
+
+@pytest.mark.parametrize(("scene", "ball", "args", "registry_values"), [
+    ("drop.xml", "pingpong", ["--e", "0.8", "--vy0", "0.4", "--t-end", "0.7"], {}),
+    ("stairs_air.xml", "bocce", ["--e", "0.8", "--t-end", "1.0"], {}),
+    ("stairs_air.xml", "pingpong", ["--e", "0.8", "--t-end", "0.6", "--drag-coefficient", "0.6",
+                                    "--spin-y", "-40", "--spin-z", "5", "--vz0", "0.5"],
+     {"drag_coefficient": 0.6, "spin": (0.0, -40.0, 5.0), "vz0": 0.5}),
+])
+def test_simulate_every_bundled_scene(capsys, scene, ball, args, registry_values):
+    """`estim simulate` on the scenes with air (it used to exit 2 asking for masses the
+    scene gives) and on the drop: exit 0, and the final state of estim.simulate with the
+    same parameters (the ball's mass from the scene; drag and spin where given)."""
+    path = str(SCENES / scene)
+    capsys.readouterr()
+    assert main(["simulate", "--scene", path, "--ball", ball, *args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    sc = estim.load_scene(path)
+    vz0 = registry_values.get("vz0", 0.0)
+    vy0 = 0.4 if "--vy0" in args else 0.0
+    extra = {k: v for k, v in registry_values.items() if k in ("drag_coefficient", "spin")}
+    p = estim.Params.for_ball(sc, ball, e=0.8, mu_t=0.98, velocity=(1.15, vy0, vz0), **extra)
+    t_end = float(args[args.index("--t-end") + 1])
+    final = estim.simulate(sc, p, t_end).final
+    got = [out["final"][k] for k in ("x", "y", "z")] + [out["final"][k] for k in ("vx", "vy", "vz")]
+    np.testing.assert_array_equal(got, np.concatenate([np.asarray(final.position), np.asarray(final.velocity)]))
+    assert out["n_impacts"] >= 1
+    if sc.air is not None:
+        assert out["params"]["drag_coefficient"] == registry_values.get("drag_coefficient", 0.47)
+        assert [out["params"][f"spin_{a}"] for a in "xyz"] == list(registry_values.get("spin", (0.0, 0.0, 0.0)))
+    else:
+        assert "drag_coefficient" not in out["params"]  # the air's parameters only where there is air
+    text_args = ["simulate", "--scene", path, "--ball", ball, *args]
+    assert main(text_args) == 0
+    text = capsys.readouterr().out
+    assert f"{float(final.position[0]):.10f}" in text
+    assert ("drag_coefficient = " in text) == (sc.air is not None)
+
+
+def test_simulate_refuses_air_parameters_in_a_vacuum(capsys):
+    err = run_error(capsys, "simulate", "--scene", SCENE, "--ball", "golf", "--spin-y", "30")
+    assert "--spin-y" in err and "scene with air" in err
+    err = run_error(capsys, "simulate", "--scene", SCENE, "--ball", "golf", "--drag-coefficient", "-1")
+    assert "--drag-coefficient must be > 0" in err
+
+
 def test_missing_and_malformed_scene(capsys, tmp_path):
     err = run_error(capsys, "simulate", "--scene", str(tmp_path / "nope.xml"), "--ball", "golf")
     assert "nope.xml" in err

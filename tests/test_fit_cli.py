@@ -8,8 +8,7 @@ from pathlib import Path
 
 import pytest
 
-import estim.fitting._job  # imported here, at collection, so later tests never see a closed stream
-from estim.app._cli import main
+from estim.app._cli import main, progress
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = str(ROOT / "data" / "scenes" / "stairs.xml")
@@ -87,6 +86,18 @@ def test_fit_pixels_without_frame_interval(tmp_path, capsys):
     _fails(["fit", str(p), "--pixels", "--scene", DROP, "--ball", "pingpong"], capsys, "--frame-interval")
 
 
+def test_fit_also_names_from_the_registry(capsys):
+    """--also takes the registry's names (a vector's name for its components): the air's
+    parameters in a scene without air are refused before any fit, naming them; a name the
+    registry does not have is an argparse error."""
+    err = _fails(["fit", DEMO_CSV, "--scene", SCENE, "--also", "spin"], capsys, "needs a scene with air")
+    assert "spin_x" in err and "spin_z" in err
+    _fails(["fit", DEMO_CSV, "--scene", SCENE, "--also", "drag_coefficient"], capsys, "needs a scene with air")
+    with pytest.raises(SystemExit) as info:
+        main(["fit", DEMO_CSV, "--scene", SCENE, "--also", "omega"])
+    assert info.value.code == 2 and "invalid choice: 'omega'" in capsys.readouterr().err
+
+
 def test_fit_frame_interval_without_pixels(capsys):
     _fails(["fit", DEMO_CSV, "--scene", SCENE, "--frame-interval", "0.01"], capsys, "--pixels")
 
@@ -105,6 +116,6 @@ def test_fit_pixels_real_table(capsys):
 
 
 def test_fit_progress_follows_sys_stderr(capsys):
-    say = estim.fitting._job._progress()
+    say = progress()
     say("hello from the progress reporter")
     assert "hello from the progress reporter" in capsys.readouterr().err

@@ -104,15 +104,19 @@ def test_energy_steps_follow_the_restitution_law(seed, tmp_path):
                                   lines["golf"].get_ydata())
 
 
-def fake_result(n=50, outliers=(10, 30), lost=(5, 6, 7)):
-    """A FitResult for two balls, built by hand: known samples, outliers and gaps."""
+def fake_result(n=50, outliers=(10, 30), lost=(5, 6, 7), with_y=False):
+    """A FitResult for two balls, built by hand: known samples, outliers and gaps (and,
+    ``with_y``, a y coordinate: the balls move along y)."""
     rng = np.random.default_rng(1)
     t = np.linspace(0.0, 1.0, n)
     data, balls = {}, {}
     for k, b in enumerate(("golf", "pingpong")):
         model = np.stack([0.1 + t, np.zeros(n), 1.5 - 0.5 * G * t**2 + 0.1 * k], 1)
+        if with_y:
+            model[:, [0, 1]] = model[:, [1, 0]]
         meas = model + rng.normal(0, 0.002, model.shape)
-        meas[:, 1] = np.nan
+        if not with_y:
+            meas[:, 1] = np.nan
         if b == "golf":
             meas[list(outliers), 2] += 0.05
             meas[list(lost), 2] = np.nan
@@ -154,6 +158,21 @@ def test_fit_residual_and_loss_plots(tmp_path):
     assert len(lines["golf"].get_xdata()) == 12 and len(lines["pingpong"].get_xdata()) == 15
     for name in ("fit.png", "residuals.png", "loss.png"):
         assert is_png(tmp_path / name)
+
+
+def test_fit_plots_of_3d_tracks_show_y():
+    """Tracks with y (a ball thrown along y) get a y panel beside z and x: the measured y
+    and the fitted model's y (the fit's own solution, so every fitted parameter)."""
+    data, result = fake_result(with_y=True)
+    fig = estim.plot_fit(data, result)
+    z_ax, x_ax, y_ax = fig.axes
+    assert y_ax.get_ylabel() == "y [m]" and y_ax.get_xlabel() == "t [s]" and x_ax.get_xlabel() == ""
+    for line, b in zip(y_ax.get_lines()[1::2], ("golf", "pingpong"), strict=True):  # measured, model per ball
+        np.testing.assert_array_equal(line.get_ydata(), result.balls[b].model_position[:, 1])
+    np.testing.assert_allclose(y_ax.get_lines()[1].get_ydata(), 0.1 + data["golf"][0])  # along y
+    fig = estim.plot_residuals(data, result)
+    for ax in fig.axes:
+        assert {"x", "y", "z"} <= set(lines_by_label(ax))
 
 
 def test_demo_writes_heights_and_energy(tmp_path):

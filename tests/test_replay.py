@@ -16,6 +16,7 @@ import stat
 import sys
 from pathlib import Path
 
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
@@ -126,7 +127,11 @@ def test_motion_follows_the_fit_and_the_data(motion, stairs):
         np.testing.assert_allclose(motion.measured[b][:, 0], v["x0"] + v["vx0"] * motion.t, atol=1e-12)
         np.testing.assert_allclose(motion.measured[b][:, 2], v["z0"] + LIFT)
         np.testing.assert_allclose(motion.measured[b][:, 1], y)
-        assert motion.params[b] == {k: v[k] for k in ("e", "mu_t", "vx0")}
+        # Every parameter of the registry: the fit's where it gives one, else the default.
+        defaults = {"y0": y, "vy0": 0.0, "vz0": 0.0, "t0": 0.0, "drag_coefficient": 0.47,
+                    "spin_x": 0.0, "spin_y": 0.0, "spin_z": 0.0}
+        assert motion.params[b] == {**v, **defaults}
+        assert motion.caption(b) == f"e = {v['e']:.3f}   mu_t = {v['mu_t']:.3f}   vx0 = {v['vx0']:.3f} m/s"
 
 
 def test_dropped_sample_gives_no_halo(stairs):
@@ -144,6 +149,70 @@ def test_missing_ball_in_fit_is_named(stairs):
     fit = {"balls": {b: v for b, v in FIT.items() if b != "golf"}}
     with pytest.raises(ValueError, match="golf"):
         estim.replay_motion(stairs, fit, tracks_dict())
+
+
+AIR_SCENE = str(Path(SCENE).with_name("stairs_air.xml"))
+# A ping-pong ball fitted in air with every parameter the registry has (as `estim fit
+# --also vz0 vy0 y0 t0 drag_coefficient spin` writes it): the replay must use them all.
+AIR_FIT = {"e": 0.8, "mu_t": 0.93, "x0": -0.2, "y0": 0.28, "z0": 1.72, "vx0": 1.3, "vy0": 0.15,
+           "vz0": 0.6, "t0": 0.05, "drag_coefficient": 0.6, "spin_x": 0.0, "spin_y": -60.0, "spin_z": 8.0}
+
+
+def test_replay_uses_every_fitted_parameter(tmp_path):
+    """fit.json with a fitted drag coefficient, spin, 3-D release state and release time:
+    the replayed positions are estim.simulate's with those parameters (from t0 on; before
+    it the ball waits at the release point), and far (centimetres) from a replay that
+    drops the drag coefficient and the spin, as the replay used to."""
+    scene = estim.load_scene(AIR_SCENE)
+    names = ["e", "mu_t", "vx0", "x0", "z0", "y0", "vy0", "vz0", "t0", "drag_coefficient",
+             "spin_x", "spin_y", "spin_z"]
+    fit = tmp_path / "fit.json"
+    fit.write_text(json.dumps({"balls": {"pingpong": {
+        **AIR_FIT, "stderr": {n: 0.001 for n in names}, "rms_m": 0.001, "converged": True,
+        "correlation": {"names": names, "matrix": np.eye(len(names)).tolist()}}}}))
+    t = np.arange(0.0, 0.9 + 1e-9, 1 / 60)
+    tracks = {"pingpong": (t, np.full((t.size, 3), 0.5))}
+    motion = estim.replay_motion(scene, str(fit), tracks, fps=20)
+    v = AIR_FIT
+    assert motion.params["pingpong"] == v
+    assert motion.free["pingpong"] == tuple(names)
+    caption = motion.caption("pingpong")
+    for part in ("vy0 = 0.150 m/s", "drag_coefficient = 0.600", "spin_y = -60.000 rad/s"):
+        assert part in caption, caption
+
+    def simulated(drag, spin):
+        p = estim.Params.for_ball(scene, "pingpong", e=v["e"], mu_t=v["mu_t"],
+                                  position=(v["x0"], v["y0"], v["z0"]), velocity=(v["vx0"], v["vy0"], v["vz0"]),
+                                  drag_coefficient=drag, spin=spin)
+        after = motion.t >= v["t0"]
+        ts = motion.t[after] - v["t0"]
+        return after, np.asarray(estim.simulate(scene, p, float(ts[-1]), ts=jnp.asarray(ts)).position)
+
+    after, want = simulated(v["drag_coefficient"], (v["spin_x"], v["spin_y"], v["spin_z"]))
+    got = motion.fitted["pingpong"]
+    # The replay samples the dense solution of one simulation; estim.simulate here the
+    # solution at the sample times: the same ODE solution, to its interpolation (1e-9 m).
+    np.testing.assert_allclose(got[after], want, atol=1e-9)
+    np.testing.assert_array_equal(got[~after], np.tile([v["x0"], v["y0"], v["z0"]], (int((~after).sum()), 1)))
+    _, old = simulated(0.47, (0.0, 0.0, 0.0))  # what the replay showed before
+    assert np.max(np.linalg.norm(old - want, axis=1)) > 0.01
+
+
+def test_replay_refuses_a_spin_in_a_vacuum(stairs):
+    fit = {"balls": {b: dict(v, spin_y=(30.0 if b == "golf" else 0.0)) for b, v in FIT.items()}}
+    with pytest.raises(ValueError, match="'golf'.*spin_y = 30.*scene with air"):
+        estim.replay_motion(stairs, fit, tracks_dict())
+
+
+def test_replay_reads_the_old_fit_json_keys(stairs):
+    """A fit.json written before the registry (its 11 parameter keys, no spin_x, spin_z)
+    replays as before, with the values it gives."""
+    old = {b: dict(v, vz0=0.0, t0=0.0, y0=stairs.ball(b).position[1], vy0=0.0, drag_coefficient=0.47,
+                   spin_y=0.0) for b, v in FIT.items()}
+    m = estim.replay_motion(stairs, {"balls": old}, tracks_dict(), fps=10)
+    for b in FIT:
+        np.testing.assert_array_equal(m.fitted[b], estim.replay_motion(stairs, {"balls": FIT}, tracks_dict(),
+                                                                        fps=10).fitted[b])
 
 
 # --------------------------------------------------------------------------- MuJoCo frames

@@ -12,18 +12,22 @@ import numpy as np
 import pytest
 
 import estim
-from estim.tracks._synthetic import synthesize_tracks
-from estim.tracks._tracks import (
+from estim.tracks._csv import Tracks, TracksError, read_tracks_csv, write_tracks_csv
+from estim.tracks._flights import (
+    fit_flights,
+    flight_contacts,
+    robust_noise,
+    robust_std,
+    split_flights,
+)
+from estim.tracks._pixels import (
     PixelTrack,
-    Tracks,
-    TracksError,
     estimate_pixel_scale,
     estimate_surface_row,
     read_pixel_track,
-    read_tracks_csv,
     restitution_from_flight_times,
-    write_tracks_csv,
 )
+from estim.tracks._synthetic import synthesize_tracks
 
 ROOT = Path(__file__).resolve().parents[1]
 STAIRS = ROOT / "data" / "scenes" / "stairs.xml"
@@ -247,6 +251,75 @@ def test_restitution_on_synthetic_drop():
     np.testing.assert_allclose(r.e[both], 0.8, atol=0.005)
     # the first flight and a last flight cut off by the end are extrapolated parabolas
     np.testing.assert_allclose(r.e, 0.8, atol=0.04)
+
+
+# ---------------------------------------------------------------------------------------
+# Flights: the one noise estimator and the two splitters (estim.tracks._flights)
+# ---------------------------------------------------------------------------------------
+
+
+def _drop(e=0.8, h=0.5, g=9.81, dt=1 / 240, t_end=2.2, offset=0.3):
+    """Noise-free drop from rest at height h above contact; (t, z, closed-form bounce times)."""
+    t = (np.arange(int(t_end / dt)) + offset) * dt
+    hits, v = [math.sqrt(2 * h / g)], e * math.sqrt(2 * g * h)
+    while hits[-1] + 2 * v / g < t_end:
+        hits.append(hits[-1] + 2 * v / g)
+        v *= e
+    z = np.empty_like(t)
+    for i, ti in enumerate(t):
+        k = int(np.searchsorted(hits, ti))  # flights before ti
+        if k == 0:
+            z[i] = h - 0.5 * g * ti**2
+        else:
+            tau, vk = ti - hits[k - 1], e**k * math.sqrt(2 * g * h)
+            z[i] = vk * tau - 0.5 * g * tau**2
+    return t, z, np.array(hits)
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_robust_noise_reads_the_noise_of_a_piecewise_polynomial(order):
+    """White noise of known sigma on a polynomial of degree order - 1 that breaks every
+    1000 samples (bounces; each spoils about order + 1 differences, which move the median
+    by a fraction of that): the estimate is sigma to 2% at 20000 samples, where the MAD's
+    own scatter is below 1%; without noise it is 0; the binomial stencil is numpy's
+    nested k-th difference to rounding."""
+    rng = np.random.default_rng(order)
+    n, sigma = 20_000, 0.003
+    i = np.arange(n, dtype=np.float64)
+    clean = np.where((i // 1000) % 2 == 0, 1.0, -1.0) * (0.01 * (i % 1000)) ** (order - 1)
+    y = clean + rng.normal(0.0, sigma, n)
+    assert robust_noise(y, order=order) == pytest.approx(sigma, rel=0.02)
+    assert robust_noise(3.0 + 2.0 * i[:50] ** (order - 1), order=order) == 0.0  # exact polynomial
+    nested = robust_std(np.diff(y, order)) / math.sqrt(math.comb(2 * order, order))
+    assert robust_noise(y, order=order) == pytest.approx(nested, rel=1e-12)
+    assert math.isnan(robust_noise(y[: order + 2], order=order))  # fewer than 3 differences
+    # A robust spread: 1.4826 MAD is the standard deviation of Gaussian data, and 10% gross
+    # outliers move it by about 14% (the median of |r| moves up one decile), a standard
+    # deviation by a factor 30.
+    r = rng.normal(0.0, 1.0, n)
+    assert robust_std(r) == pytest.approx(1.0, rel=0.02)
+    r[::10] = 100.0
+    assert robust_std(r) < 1.2 < 30 < np.std(r)
+
+
+def test_both_splitters_find_the_closed_form_bounces():
+    """A noise-free drop (e = 0.8, 0.5 m, 240 frames/s, 6 bounces): the splitter that knows g
+    (lines of w = z + g t^2/2) and the one that does not (parabolas between the maxima
+    of -z) both find every bounce at the closed-form time; the second measures g."""
+    g = 9.81
+    t, z, hits = _drop(g=g)
+    assert hits.size >= 5
+    flights, sigma = split_flights(t, 0.1 * t, z, g)
+    assert sigma < 1e-12  # no noise: the second differences of w are rounding
+    # consecutive lines of w meet at the bounce (exact data: to rounding, 1e-14 s measured)
+    met = [(a.w[0] - b.w[0]) / (b.w[1] - a.w[1]) for a, b in zip(flights[:-1], flights[1:], strict=True)]
+    np.testing.assert_allclose(met, hits, atol=1e-9)
+    np.testing.assert_allclose([f.x[1] for f in flights], 0.1, rtol=1e-9)
+    bounces, fits, contacts = flight_contacts(t, -z)
+    assert [c[3] for c in contacts] == [f for f in fits if f.stop in bounces]
+    np.testing.assert_allclose([c[1] for c in contacts], hits, atol=1e-9)
+    np.testing.assert_allclose([2 * f.curvature for f in fits], g, rtol=1e-9)
+    assert [f.start for f in fit_flights(t, -z)[1]] == [f.start for f in fits]
 
 
 # ---------------------------------------------------------------------------------------

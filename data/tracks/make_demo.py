@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 import estim
+from estim.tracks._csv import write_tracks_csv
 from estim.tracks._synthetic import synthesize_tracks
-from estim.tracks._tracks import write_tracks_csv
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent.parent

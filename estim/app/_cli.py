@@ -10,23 +10,18 @@ import re
 import sys
 import time
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
-import numpy as np
-
 from .._config import enable_compilation_cache
 from .._json import dumps
+from ..fitting import _registry as registry
 from ..fitting._fit import DEFAULT_FREE
 from ..fitting._job import PIXEL_FREE, fit_csv, fit_pixels
+from ..fitting._simulation_report import SENSITIVITY_NAMES, sensitivities, simulation_report
 from ..forward._balls import check_outside
 from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
 from ..forward._simulate import simulate
-from ..model._params import Params
 from ..model._scene import load_scene
-from ..tracks._tracks import MAX_ABS_POSITION, MAX_ABS_TIME
+from ..tracks._csv import MAX_ABS_POSITION, MAX_ABS_TIME
 from ._bench import (
-    default_docs_dir,
     format_accuracy,
     format_fit_bench,
     format_speed,
@@ -47,7 +42,16 @@ from ._demo import (
 
 __all__ = ["main"]
 
-THETA = ("e", "mu_t", "vx0")
+THETA = SENSITIVITY_NAMES
+# `estim simulate`'s help for the parameters whose defaults are the seed experiment's (the
+# others' help comes from the registry, estim.fitting._registry).
+SIMULATE_HELP = {
+    "e": "coefficient of restitution in [0, 1] (default: the seed value of the ball: bocce 0.55, "
+         "golf 0.70, pingpong 0.85)",
+    "mu_t": f"tangential coefficient in [0, 1] (default {SEED['mu_t']})",
+    **{f"{a}0": f"release {a} (m; default: the ball's position in the scene)" for a in "xyz"},
+    **{f"v{a}0": f"release velocity {a} (m/s; default {SEED['velocity'][i]})" for i, a in enumerate("xyz")},
+}
 
 
 class UsageError(Exception):
@@ -97,17 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--scene", default=None,
                      help="MJCF scene file (default: the bundled data/scenes/stairs.xml)")
     sim.add_argument("--ball", required=True, help="name of a ball (body) in the scene")
-    sim.add_argument("--e", type=_finite, default=None,
-                     help="coefficient of restitution in [0, 1] (default: the seed value of "
-                          "the ball: bocce 0.55, golf 0.70, pingpong 0.85)")
-    sim.add_argument("--mu-t", type=_finite, default=SEED["mu_t"],
-                     help=f"tangential coefficient in [0, 1] (default {SEED['mu_t']})")
-    for axis in ("x", "y", "z"):
-        sim.add_argument(f"--{axis}0", type=_finite, default=None,
-                         help=f"release {axis} (m; default: the ball's position in the scene)")
-    for axis, i in (("x", 0), ("y", 1), ("z", 2)):
-        sim.add_argument(f"--v{axis}0", type=_finite, default=SEED["velocity"][i],
-                         help=f"release velocity {axis} (m/s; default {SEED['velocity'][i]})")
+    # One option per component of the registry that lives in Params (not t0, the release
+    # time on a data clock); None: the seed's value, else the registry's default.
+    for entry in registry.REGISTRY:
+        for name in entry.components if entry.field is not None else ():
+            sim.add_argument(_flag(name), type=_finite, default=None, dest=name,
+                             help=SIMULATE_HELP.get(name) or _registry_help(entry, name))
     sim.add_argument("--t-end", type=_finite, default=SEED["t_end"],
                      help=f"final time (s), > 0 (default {SEED['t_end']})")
     sim.add_argument("--sensitivities", action="store_true",
@@ -139,10 +138,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --pixels: fit only the data after this bounce (default 0: from "
                           "the release); leaves out the fastest flights, where drag matters most")
     fit.add_argument("--also", nargs="+", default=[], metavar="PARAM",
-                     choices=("vz0", "t0", "y0", "vy0", "drag_coefficient", "spin_y"),
-                     help="more parameters to fit besides e, mu_t, vx0 and the release point: "
-                          "vz0, t0 (time offset), y0, vy0, and in a scene with air "
-                          "drag_coefficient and spin_y (spin about y, rad/s)")
+                     choices=registry.NAMES + tuple(p.name for p in registry.REGISTRY if p.components != (p.name,)),
+                     help="more parameters to fit besides e, mu_t, vx0 and the release point "
+                          "(names of the parameter registry): vz0, t0 (time offset), y0, vy0, and "
+                          "in a scene with air drag_coefficient and spin_x, spin_y, spin_z (rad/s); "
+                          "a vector's name stands for its components (velocity, position, spin)")
     fit.set_defaults(func=_cmd_fit)
 
     bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks.")
@@ -173,11 +173,12 @@ def build_parser() -> argparse.ArgumentParser:
                                        "closed form against the ODE path forced with diffrax Tsit5, "
                                        "Dopri5 and Dopri8 at rtol 1e-3 ... 1e-12 (atol = rtol/10); "
                                        "in still air (stairs_air.xml), the same against Dopri8 at "
-                                       "rtol 1e-13. Writes accuracy_table.md, accuracy.png and "
-                                       "accuracy.json into --out.")
+                                       "rtol 1e-13. Prints the tables; with --out also writes "
+                                       "accuracy_table.md, accuracy.png and accuracy.json there "
+                                       "(the docs page is written by docs/scripts/accuracy.py).")
     accb.add_argument("--out", default=None,
-                      help="output directory (default: docs/pages of the checkout); an "
-                           "accuracy.md there with the table markers gets the new table")
+                      help="output directory for accuracy_table.md, accuracy.png and "
+                           "accuracy.json (default: write no files)")
     accb.add_argument("--repeats", type=_positive_int, default=None,
                       help="timing rounds per setting, median reported (default 7; 3 with --quick)")
     accb.add_argument("--quick", action="store_true",
@@ -252,6 +253,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _flag(name: str) -> str:
+    """The command-line option of a registry component: ``mu_t`` -> ``--mu-t``."""
+    return "--" + name.replace("_", "-")
+
+
+def _registry_help(entry, name: str) -> str:
+    """Help for a registry component: its documentation, unit and default."""
+    try:
+        default = f"{entry.default(None)[entry.components.index(name)]:g}"
+    except (AttributeError, TypeError):  # a default that the ball gives
+        default = "the ball's in the scene"
+    where = "; acts only in a scene with air" if entry.needs_air else ""
+    unit = f"{entry.unit}; " if entry.unit else ""
+    part = f", {'xyz'[entry.components.index(name)]} component" if len(entry.components) == 3 else ""
+    return f"{entry.doc}{part} ({unit}default {default}{where})"
+
+
 def progress(stream=None):
     start = time.perf_counter()
 
@@ -278,90 +296,58 @@ def main(argv: list[str] | None = None) -> int:
 # --------------------------------------------------------------------------- simulate
 
 
-def _cmd_simulate(args) -> int:
+def _simulation_values(args, scene, spec) -> dict[str, float]:
+    """Every registry component of ``estim simulate``'s ball: the options given, else the
+    seed experiment's e (per ball), mu_t and velocity, else the registry's defaults (the
+    ball's position in the scene, no spin, ...)."""
+    seed = {"mu_t": SEED["mu_t"], **dict(zip(("vx0", "vy0", "vz0"), SEED["velocity"], strict=True))}
+    if args.ball in SEED["e"]:
+        seed["e"] = SEED["e"][args.ball]
+    given = {n: getattr(args, n) for n in registry.NAMES if getattr(args, n, None) is not None}
+    for name, v in given.items():
+        entry = registry.component(name)
+        why = entry.transform.refuse(v)
+        if why:
+            raise UsageError(f"{_flag(name)} {why}, got {v}")
+        if entry.needs_air and scene is not None and scene.air is None:
+            raise UsageError(f"{_flag(name)}: the {entry.name.replace('_', ' ')} acts only in a scene "
+                             "with air (<option density=...>), and this scene has none")
+    if spec is None:
+        return {}
+    if "e" not in given and "e" not in seed:
+        raise UsageError(f"--e is required for ball {args.ball!r} (no seed value)")
+    return {**registry.defaults(spec), **seed, **given}
 
-    e = args.e if args.e is not None else SEED["e"].get(args.ball)
-    for name, value in (("--e", e), ("--mu-t", args.mu_t)):
-        if value is not None and not 0.0 <= value <= 1.0:
-            raise UsageError(f"{name} must lie in [0, 1], got {value}")
+
+def _cmd_simulate(args) -> int:
+    _simulation_values(args, None, None)  # the ranges of the options given, before any file is read
     if not args.t_end > 0:
         raise UsageError(f"--t-end must be > 0 (seconds), got {args.t_end}")
 
     scene_path = args.scene or default_scene_path()
     scene = load_scene(scene_path)
     spec = scene.ball(args.ball)
-    if e is None:
-        raise UsageError(f"--e is required for ball {args.ball!r} (no seed value)")
-    position = [spec.position[i] if v is None else v
-                for i, v in enumerate((args.x0, args.y0, args.z0))]
-    velocity = [args.vx0, args.vy0, args.vz0]
-    # The limits of the track reader (estim.tracks._tracks): beyond them the numbers are not
+    values = _simulation_values(args, scene, spec)
+    # The limits of the track reader (estim.tracks._csv): beyond them the numbers are not
     # metres and seconds of a tabletop experiment, whatever the simulator could do with them.
-    for axis, v in zip("xyz", position, strict=True):
-        if abs(v) > MAX_ABS_POSITION:
-            raise UsageError(f"--{axis}0 = {v:g} is not a position in metres (|{axis}0| > "
+    for name in registry.component("x0").components:
+        if abs(values[name]) > MAX_ABS_POSITION:
+            raise UsageError(f"{_flag(name)} = {values[name]:g} is not a position in metres (|{name}| > "
                              f"{MAX_ABS_POSITION:g}); millimetres? estim never rescales")
     if args.t_end > MAX_ABS_TIME:
         raise UsageError(f"--t-end = {args.t_end:g} is not a time in seconds (> {MAX_ABS_TIME:g}); "
                          "milliseconds? estim never rescales")
-    params = Params(e, args.mu_t, spec.radius, position, velocity)
+    air = scene.air is not None
+    # The mass only where the air needs it: without it the pytree (and so the compiled
+    # program) is that of a plain simulation.
+    params = registry.to_params(values, radius=spec.radius, mass=spec.mass if air else None, air=air)
     check_outside(scene, params, names=[args.ball])
     traj = simulate(scene, params, args.t_end)
 
-    ev = traj.events
-    count = int(ev.count)
-    t = np.asarray(ev.t)[:count]
-    pos = np.asarray(ev.position)[:count]
-    vpre = np.asarray(ev.velocity_pre)[:count]
-    face = np.asarray(ev.face)[:count]
-    kind = np.asarray(ev.kind)[:count]
-    events = []
-    for i in range(count):
-        surface, label = scene.face_label(int(face[i]))
-        events.append({
-            "t": float(t[i]),
-            "x": float(pos[i, 0]), "y": float(pos[i, 1]), "z": float(pos[i, 2]),
-            "vx": float(vpre[i, 0]), "vy": float(vpre[i, 1]), "vz": float(vpre[i, 2]),
-            "surface": surface, "face": label,
-            "kind": "impact" if int(kind[i]) == 0 else "settle",
-        })
-    fp, fv = np.asarray(traj.final.position), np.asarray(traj.final.velocity)
-    out = {
-        "scene": scene_path,
-        "ball": spec.name,
-        "radius": float(spec.radius),
-        "params": {
-            "e": float(e), "mu_t": float(args.mu_t),
-            "x0": float(position[0]), "y0": float(position[1]), "z0": float(position[2]),
-            "vx0": float(velocity[0]), "vy0": float(velocity[1]), "vz0": float(velocity[2]),
-            "t_end": float(args.t_end),
-        },
-        "n_impacts": sum(1 for x in events if x["kind"] == "impact"),
-        "n_events": count,
-        "truncated": bool(ev.truncated),
-        "events": events,
-        "final": {
-            "t": float(traj.final.t),
-            "x": float(fp[0]), "y": float(fp[1]), "z": float(fp[2]),
-            "vx": float(fv[0]), "vy": float(fv[1]), "vz": float(fv[2]),
-        },
-    }
-
+    out = {"scene": scene_path, "ball": spec.name, "radius": float(params.radius),
+           **simulation_report(scene, traj, values, args.t_end)}
     if args.sensitivities:
-        theta = jnp.array([e, args.mu_t, args.vx0], dtype=jnp.float64)
-        dx, dz, dt = _sensitivities(scene, theta, jnp.asarray(spec.radius, jnp.float64),
-                                    jnp.asarray(position, jnp.float64),
-                                    jnp.asarray(velocity[1:], jnp.float64), float(args.t_end))
-        dx, dz, dt = np.asarray(dx), np.asarray(dz), np.asarray(dt)
-
-        def named(row):
-            return {k: float(v) for k, v in zip(THETA, row, strict=True)}
-
-        out["sensitivities"] = {
-            "wrt": list(THETA),
-            "final": {"x": named(dx), "z": named(dz)},
-            "events": [{"t": named(dt[i])} for i in range(count)],
-        }
+        out["sensitivities"] = sensitivities(scene, params, values, args.t_end, THETA)
 
     if args.json:
         print(dumps(out))
@@ -370,38 +356,22 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
-def _sensitivities(scene, theta, radius, position, v_yz, t_end):
-    """One ``jax.jacfwd`` of theta = (e, mu_t, vx0) -> (final x, final z, event times);
-    jitted, so repeated calls with the same shapes compile once."""
-    global _SENS
-    if _SENS is None:
-
-        @eqx.filter_jit
-        def sens(scene, theta, radius, position, v_yz, t_end):
-            def f(theta):
-                e, mu_t, vx0 = theta[0], theta[1], theta[2]
-                velocity = jnp.concatenate([vx0[None], v_yz])
-                traj = simulate(scene, Params(e, mu_t, radius, position, velocity), t_end)
-                ev = traj.events
-                valid = jnp.arange(ev.t.shape[-1]) < ev.count
-                times = jnp.where(valid, ev.t, 0.0)  # padding (inf) masked out
-                return traj.final.position[0], traj.final.position[2], times
-
-            return jax.jacfwd(f)(theta)
-
-        _SENS = sens
-    return _SENS(scene, theta, radius, position, v_yz, t_end)
-
-
-_SENS = None
-
-
 def _format_simulation(out: dict) -> str:
     p = out["params"]
     lines = [
         f"ball {out['ball']} (r = {out['radius']} m) in {out['scene']}",
         f"e = {p['e']}, mu_t = {p['mu_t']}, release ({p['x0']}, {p['y0']}, {p['z0']}) m, "
         f"velocity ({p['vx0']}, {p['vy0']}, {p['vz0']}) m/s, t_end = {p['t_end']} s",
+    ]
+    # The rest of the registry's parameters that the simulation used (in a scene with air:
+    # the drag coefficient and the spin), one entry each.
+    for entry in registry.REGISTRY:
+        if entry.name in ("e", "mu_t", "position", "velocity") or entry.components[0] not in p:
+            continue
+        numbers = ", ".join(f"{p[c]}" for c in entry.components)
+        lines.append(f"{entry.name} = {numbers if len(entry.components) == 1 else '(' + numbers + ')'}"
+                     + (f" {entry.unit}" if entry.unit else ""))
+    lines += [
         "",
         f"{out['n_events']} events ({out['n_impacts']} impacts)"
         + (" [truncated: more events than listed]" if out["truncated"] else ""),
@@ -450,17 +420,17 @@ def _cmd_bench_fit(args) -> int:
 
 
 def _cmd_bench_accuracy(args) -> int:
-    out = args.out or default_docs_dir()
-    if os.path.exists(out) and not os.path.isdir(out):
+    out = args.out
+    if out is not None and os.path.exists(out) and not os.path.isdir(out):
         raise UsageError(f"--out {out}: not a directory")
     repeats = args.repeats or (3 if args.quick else 7)
     result = run_accuracy(repeats=repeats, quick=args.quick, say=progress())
-    paths = write_accuracy(result, out)
     if args.json:
         print(dumps(result))
     else:
         print(format_accuracy(result))
-    print("wrote " + ", ".join(paths), file=sys.stderr)
+    if out is not None:
+        print("wrote " + ", ".join(write_accuracy(result, out)), file=sys.stderr)
     return 0
 
 
@@ -562,10 +532,11 @@ def _cmd_replay(args) -> int:
 
 
 def _also(args, base) -> dict:
-    """``free=`` for the fit when --also asks for more parameters (else the default)."""
+    """``free=`` for the fit when --also asks for more parameters (registry names; a
+    vector's name stands for its components), else nothing (the fit's default)."""
     if not getattr(args, "also", None):
         return {}
-    return {"free": tuple(base) + tuple(n for n in dict.fromkeys(args.also) if n not in base)}
+    return {"free": tuple(base) + tuple(n for n in registry.expand(args.also) if n not in base)}
 
 
 def _cmd_fit(args) -> int:

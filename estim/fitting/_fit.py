@@ -2,8 +2,10 @@
 
 The pipeline, per ball (all balls of a data set run together, batched with ``vmap``):
 
-1. **Start from the data** (``estim.fitting._initial``): split the track into flights, read e, mu_t,
-   vx0 and the release point off them. The loss is rough in the parameters (a bounce moving
+1. **Start from the data** (``estim.fitting._initial``): split the track into flights in the
+   ball's plane of travel, read e, mu_t, the release point and velocity off them; every
+   parameter's start, default and transform comes from the registry
+   (``estim.fitting._registry``). The loss is rough in the parameters (a bounce moving
    onto the next tread changes the rest of the trajectory), so starting close matters more
    than any optimiser.
 2. **Grow the time window**: fit the data up to the third resolved bounce first, then all.
@@ -47,23 +49,26 @@ from ..forward._ode import finish as ode_finish
 from ..forward._ode import plan as ode_plan
 from ..forward._solver import segments_of
 from ..forward._trajectory import IMPACT, list_events, sample
-from ..model._params import DRAG_COEFFICIENT, Params
+from ..model._params import Params
 from ..model._scene import Scene
-from ..tracks._tracks import check_units
-from ._initial import MU_DEFAULT, MU_RANGE, Initial, initial_guess
+from ..tracks._csv import check_units
+from . import _registry as registry
+from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start
 from ._levenberg_marquardt import levenberg_marquardt
-from ._loss import ROBUST_LOSSES, array_namespace, robust_loss, robust_weight
+from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
 
 __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
 
-# Every parameter a fit can estimate, in the order of the internal vector.
-PARAMETERS = ("e", "mu_t", "vx0", "x0", "z0", "vz0", "t0", "y0", "vy0", "drag_coefficient", "spin_y")
-# Fitted only in a scene with air (``Scene.air``); spin_y is the spin about the y axis (rad/s),
-# which curves a flight in the xz-plane (backspin lifts a ball moving along +x when < 0).
-AIR_PARAMETERS = ("drag_coefficient", "spin_y")
+# Every parameter a fit can estimate (estim.fitting._registry), in the order of the vector
+# phi of physical values.
+PARAMETERS = registry.NAMES
+# Fitted only in a scene with air (``Scene.air``): the drag coefficient and the spin (rad/s;
+# spin_y, about the y axis, curves a flight in the xz-plane: backspin lifts a ball moving
+# along +x when < 0).
+AIR_PARAMETERS = tuple(n for n in PARAMETERS if registry.component(n).needs_air)
 DEFAULT_FREE = ("e", "mu_t", "vx0", "x0", "z0")
-_BOUNDED = ("e", "mu_t")  # in (0, 1) through a sigmoid
-_POSITIVE = ("drag_coefficient",)  # > 0 through exp
+# Fitted as well by default when the tracks have a y coordinate: the lateral release state.
+LATERAL_FREE = ("y0", "vy0")
 MIN_SAMPLES = 8  # samples with x and z that a ball needs (as read_tracks_csv by default)
 
 
@@ -75,44 +80,8 @@ class _Problem(eqx.Module):
     mask: jax.Array  # (N, 3) bool
     radius: jax.Array  # ()
     mass: jax.Array  # () (kg), for the air's forces
-    fixed: jax.Array  # (len(PARAMETERS),) values of the parameters that are not fitted
+    fixed: jax.Array  # (len(PARAMETERS),) phi: the values of the parameters not fitted
     scale: jax.Array  # () noise level s of the robust loss (m)
-
-
-def _index(free):
-    return np.array([PARAMETERS.index(n) for n in free])
-
-
-def _sigmoid(x, xp):
-    if xp is jnp:
-        return jax.nn.sigmoid(x)
-    with np.errstate(over="ignore"):
-        return 1.0 / (1.0 + np.exp(-x))
-
-
-def _to_physical(theta, free, fixed):
-    xp = array_namespace(theta)
-    values = [_sigmoid(theta[i], xp) if n in _BOUNDED else xp.exp(theta[i]) if n in _POSITIVE
-              else theta[i] for i, n in enumerate(free)]
-    if xp is np:
-        out = np.array(fixed, dtype=np.float64)
-        out[_index(free)] = values
-        return out
-    return fixed.at[_index(free)].set(jnp.stack(values))
-
-
-def _to_theta(phi, free):
-    xp = array_namespace(phi)
-    out = []
-    for n in free:
-        v = phi[PARAMETERS.index(n)]
-        if n in _BOUNDED:
-            v = xp.clip(v, 1e-6, 1 - 1e-6)
-            v = xp.log(v) - xp.log1p(-v)
-        elif n in _POSITIVE:
-            v = xp.log(xp.maximum(v, 1e-6))
-        out.append(v)
-    return xp.stack(out)
 
 
 # The ODE path's settings in a fit (scenes with air): the defaults of estim.simulate, with a
@@ -122,10 +91,9 @@ FIT_ODE = dict(rtol=1e-8, atol=1e-9, contact_slack=1e-6, max_steps=1024)
 
 def _model(scene: Scene, phi, problem: _Problem):
     """The model's parameters, sample times and end time for physical values phi."""
-    e, mu_t, vx0, x0, z0, vz0, t0, y0, vy0, cd, spin_y = (phi[i] for i in range(len(PARAMETERS)))
-    params = Params(e, mu_t, problem.radius, jnp.stack([x0, y0, z0]), jnp.stack([vx0, vy0, vz0]),
-                    mass=problem.mass, drag_coefficient=cd, spin=jnp.stack([0.0, spin_y, 0.0]))
-    ts = jnp.clip(problem.t - t0, 0.0, None)
+    values = registry.unpack(phi)
+    params = registry.to_params(values, radius=problem.radius, mass=problem.mass, air=scene.air is not None)
+    ts = jnp.clip(problem.t - values["t0"], 0.0, None)
     return params, ts, jnp.maximum(jnp.max(ts), 1e-3)
 
 
@@ -164,7 +132,7 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
 def _residuals(scene, phi, problem, pl, n_used):
     """Masked residuals (flattened), which entries are valid, model positions, impacts."""
     pos, events, ts = _simulate_at(scene, phi, problem, pl, n_used)
-    valid = problem.mask & (problem.t >= phi[PARAMETERS.index("t0")])[:, None]
+    valid = problem.mask & (problem.t >= registry.value(phi, "t0"))[:, None]
     r = jnp.where(valid, pos - problem.obs, 0.0).reshape(-1)
     impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts))).astype(jnp.int32)
     return r, (valid.reshape(-1), pos, impacts)
@@ -177,7 +145,7 @@ def _lm_step(scene, free, loss, carry, problem, pl, n_used):
     theta, state, best = carry
 
     def evaluate(theta):
-        r, aux = _residuals(scene, _to_physical(theta, free, problem.fixed), problem, pl, n_used)
+        r, aux = _residuals(scene, registry.to_physical(theta, free, problem.fixed), problem, pl, n_used)
         return r, (r, aux)
 
     J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
@@ -253,20 +221,26 @@ class FitResult:
         return {"source": self.source, "balls": {k: v.to_json() for k, v in self.balls.items()}}
 
     def format_table(self) -> str:
-        """One row per ball: e, mu_t, vx0 with standard errors, rms, samples, bounces, status."""
+        """One row per ball: the parameters the registry shows (e, mu_t, vx0, and those
+        shown where fitted, such as vy0 or the drag coefficient, when a ball fitted them)
+        with standard errors, rms, samples, bounces, status."""
 
         def pm(bf, name):
             v, s = bf.values[name], bf.stderr.get(name, math.nan)
             return f"{v:.4f} +- {s:.4f}" if math.isfinite(s) else f"{v:.4f} (n/a)"
 
-        head = f"{'ball':<10} {'e':>17} {'mu_t':>17} {'vx0 (m/s)':>17} {'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
+        fitted = {n for bf in self.balls.values() for n in bf.names}
+        columns = registry.shown(PARAMETERS, fitted)
+        labels = "".join(f" {registry.component(n).label(n):>17}" for n in columns)
+        head = f"{'ball':<10}{labels} {'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
         rows = [head, "-" * len(head)]
         for ball, bf in self.balls.items():
             status = "converged" if bf.converged else "NOT converged"
             if not bf.at_noise_floor:
                 status += ", above noise floor"
+            cells = "".join(f" {pm(bf, n):>17}" for n in columns)
             rows.append(
-                f"{ball:<10} {pm(bf, 'e'):>17} {pm(bf, 'mu_t'):>17} {pm(bf, 'vx0'):>17} "
+                f"{ball:<10}{cells} "
                 f"{bf.rms_m * 1e3:9.2f} {bf.n_obs:5d} {bf.n_bounces:7d}  {status}"
             )
             rows.extend(f"{'':<10} note: {n}" for n in bf.notes)
@@ -291,10 +265,16 @@ def fit(
         scene: the scene the balls move in (radii from its balls).
         data: ``ball -> (t (n,), position (n, 3))`` in seconds and metres, NaN marking a lost
             coordinate (``Tracks.arrays()`` gives this).
-        free: the parameters to fit (see ``PARAMETERS``; by default e, mu_t, vx0, x0, z0,
-            plus y0 and vy0 when the tracks have a y coordinate); the rest are fixed at their
-            starting values: ``vz0 = 0``, ``t0 = 0`` (release at the data's t = 0),
-            ``y0`` the ball's y in the scene, ``vy0 = 0``, unless ``fixed`` says otherwise.
+        free: the parameters to fit (the names of ``PARAMETERS``, from the registry
+            ``estim.fitting._registry``; a vector's name stands for its components:
+            ``"spin"`` for spin_x, spin_y, spin_z). By default e, mu_t, vx0, x0, z0, plus y0
+            and vy0 when the tracks have a y coordinate. The rest are held at the data's
+            start or at their default (``Parameter.hold_start``): x0, y0, z0, vx0, vy0 as
+            read from the data (in the ball's plane of travel:
+            ``estim.fitting._initial.release_start``; y0 the ball's y in the scene and
+            ``vy0 = 0`` for a track without y), ``vz0 = 0``, ``t0 = 0`` (release at the
+            data's t = 0), the drag coefficient 0.47 and no spin, unless ``fixed`` says
+            otherwise.
         fixed: per ball, values to hold fixed (or to start from, for free parameters).
         loss: ``"cauchy"`` (default), ``"huber"`` or ``"l2"``.
         restarts: how many more starts (e on a grid over [0.3, 0.9]; mu_t and vx0 from the
@@ -309,16 +289,17 @@ def fit(
             problem: times not finite or not strictly increasing, infinite positions (NaN
             marks a lost detection), fewer than 8 samples, a track that does not fall with
             the scene's gravity between bounces (not metres and seconds:
-            ``estim.tracks._tracks.check_units``), fixed values that are not finite, e or mu_t
+            ``estim.tracks._csv.check_units``), fixed values that are not finite, e or mu_t
             outside [0, 1], a fixed release point inside a solid, a ball of radius <= 0.
         KeyError: a ball the scene does not have.
     """
     require_x64()
     if loss not in ROBUST_LOSSES:
         raise ValueError(f"unknown loss {loss!r}; choose one of {ROBUST_LOSSES}")
-    bad = [n for n in free if n not in PARAMETERS]
+    bad = [n for n in free if n not in PARAMETERS and n not in (p.name for p in registry.REGISTRY)]
     if bad:
         raise ValueError(f"unknown parameter(s) {bad}; a fit can estimate {PARAMETERS}")
+    free = registry.expand(free)
     air_free = [n for n in free if n in AIR_PARAMETERS]
     if air_free and scene.air is None:
         raise ValueError(
@@ -330,10 +311,10 @@ def fit(
     names = list(data)
     if (set(DEFAULT_FREE) <= set(free) and "y0" not in free
             and any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)):
-        free = tuple(free) + ("y0", "vy0")  # 3-D tracks: the lateral release state too
+        free = tuple(free) + tuple(n for n in LATERAL_FREE if n not in free)  # 3-D tracks: the lateral release state too
     if not names:
         raise ValueError("no balls to fit")
-    g = float(scene.gravity)
+    gravity = _gravity_vector(scene)
     fixed = fixed or {}
     if "t0" not in free:
         _check_release_time(data, fixed)
@@ -343,18 +324,11 @@ def fit(
         spec = scene.ball(b)
         t, pos = (np.asarray(a, dtype=np.float64) for a in data[b])
         release = fixed.get(b, {}).get("t0", 0.0)
-        init = initial_guess(t, pos[:, 0], pos[:, 2], g, release_time=release)
+        init = release_start(t, pos, gravity, release_time=release)
         inits.append(init)
-        values = dict(e=init.e, mu_t=init.mu_t, vx0=init.vx0, x0=init.x0, z0=init.z0,
-                      vz0=0.0, t0=release, y0=spec.position[1], vy0=0.0,
-                      drag_coefficient=DRAG_COEFFICIENT, spin_y=0.0)
-        if "vz0" in free:
-            values["vz0"] = init.vz0
-        y = pos[:, 1][np.isfinite(pos[:, 1])]
-        if len(y):
-            values["y0"] = float(np.median(y))
+        values = registry.starting_values(spec, init, free)
         values.update(fixed.get(b, {}))
-        phi = np.array([values[n] for n in PARAMETERS])
+        phi = registry.pack(values)
         pad = n_max - len(t)
         mask = np.isfinite(pos)
         problems.append(_Problem(
@@ -366,7 +340,7 @@ def fit(
             fixed=phi,
             scale=np.float64(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3),
         ))
-        starts.append(_to_theta(phi, free))
+        starts.append(registry.to_theta(phi, free))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
             f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
     batch = jax.tree.map(lambda *xs: np.stack(xs), *problems)
@@ -407,17 +381,8 @@ def fit(
         trial = np.asarray(best_theta).copy()
         for i, ok in enumerate(floors):
             if not ok:
-                phi = _to_physical(starts[i], free, problems[i].fixed)
-                if "e" in free:
-                    phi[0] = grid[attempt]
-                if _restart_mu_at_default(inits[i], free, fixed.get(names[i], {})):
-                    phi[1] = MU_DEFAULT
-                for n, spread in (("mu_t", 0.02), ("vx0", 0.03)):
-                    if n in free:
-                        k = PARAMETERS.index(n)
-                        phi[k] = phi[k] + spread * rng.uniform(-1, 1)
-                phi[:2] = np.clip(phi[:2], 0.02, 0.995)
-                trial[i] = _to_theta(phi, free)
+                trial[i] = _restart(starts[i], free, problems[i].fixed, inits[i],
+                                    fixed.get(names[i], {}), grid[attempt], rng)
         tried = run(trial, batch)
         for i in range(len(names)):
             if _objective(tried[2], i, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
@@ -520,16 +485,16 @@ def _check_inputs(scene, data, fixed) -> None:
             if name not in PARAMETERS:
                 raise ValueError(f"fixed[{b!r}]: unknown parameter {name!r}; the parameters "
                                  f"are {PARAMETERS}")
+            entry = registry.component(name)
             v = float(v)
             if not math.isfinite(v):
                 raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} must be finite")
-            if name in _BOUNDED and not 0.0 <= v <= 1.0:
-                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} must lie in [0, 1]")
-            if name in _POSITIVE and not v > 0:
-                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} must be > 0")
-            if name in AIR_PARAMETERS and name != "drag_coefficient" and v != 0 and scene.air is None:
-                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r}: spin has no effect in a scene "
-                                 "without air")
+            why = entry.transform.refuse(v)
+            if why:
+                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} {why}")
+            if entry.zero_without_air and v != 0 and scene.air is None:
+                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r}: {entry.name} has no effect in a "
+                                 "scene without air")
         if "x0" in values and "z0" in values:
             spec = scene.ball(b)
             y0 = float(values.get("y0", spec.position[1]))
@@ -550,6 +515,39 @@ def _adopt(best, result, i) -> None:
     takes its values from the run ``result``."""
     for x, y in zip(jax.tree.leaves(best), jax.tree.leaves(result), strict=True):
         x[i] = y[i]
+
+
+def _gravity_vector(scene: Scene) -> np.ndarray:
+    """The scene's gravity as a vector (m/s^2). ``Scene.gravity`` is the magnitude of a
+    gravity along -z (``load_scene`` refuses any other direction: the forward model's
+    contacts assume it); the starts (``release_start``) take the vector, so a scene that
+    carries another direction only has to hand it here."""
+    return np.array([0.0, 0.0, -float(scene.gravity)])
+
+
+def _restart(theta, free, fixed_phi, init: Initial, fixed: dict, e: float, rng) -> np.ndarray:
+    """theta of a restart from the start ``theta``: e at ``e`` (a point of the grid over its
+    range), mu_t at ``MU_DEFAULT`` where ``_restart_mu_at_default`` says so, mu_t perturbed
+    by up to 0.02 and the release speed along the direction of travel by up to 0.03 m/s
+    (one draw each, in this order, for the fitted ones), e and mu_t kept in [0.02, 0.995]."""
+    phi = registry.to_physical(theta, free, fixed_phi)
+    k = dict(zip(PARAMETERS, range(len(PARAMETERS)), strict=True))
+    if "e" in free:
+        phi[k["e"]] = e
+    if _restart_mu_at_default(init, free, fixed):
+        phi[k["mu_t"]] = MU_DEFAULT
+    if "mu_t" in free:
+        phi[k["mu_t"]] = phi[k["mu_t"]] + 0.02 * rng.uniform(-1, 1)
+    if "vx0" in free or "vy0" in free:
+        # Along the direction of travel u (``(1, 0, 0)`` for a track without y): the
+        # component along x of a draw r is 0.03 * 1.0 * r, exactly the draw along x.
+        dv = 0.03 * rng.uniform(-1, 1)
+        for n, u in (("vx0", init.direction[0]), ("vy0", init.direction[1])):
+            if n in free:
+                phi[k[n]] = phi[k[n]] + u * dv
+    for n in ("e", "mu_t"):
+        phi[k[n]] = np.clip(phi[k[n]], 0.02, 0.995)
+    return registry.to_theta(phi, free)
 
 
 def _restart_mu_at_default(init: Initial, free, fixed) -> bool:
@@ -611,7 +609,7 @@ def _run(scene, free, loss, steps, max_segments, theta, batch):
     def step(carry, _):
         # Plan every ball first: the replays then run only as many slots as the longest
         # solution of the batch uses (estim.forward._scan).
-        at = lambda th, pr: _plan_at(scene, _to_physical(th, free, pr.fixed), pr, max_segments)  # noqa: E731
+        at = lambda th, pr: _plan_at(scene, registry.to_physical(th, free, pr.fixed), pr, max_segments)  # noqa: E731
         plans, used = jax.vmap(at)(carry[0], batch)
         n_used = jnp.max(used)
         one = lambda c, pr, pl: _lm_step(scene, free, loss, c, pr, pl, n_used)  # noqa: E731
@@ -623,10 +621,10 @@ def _run(scene, free, loss, steps, max_segments, theta, batch):
 
 def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, noise) -> BallFit:
     r, J, (_, pos, impacts) = jax.tree.map(lambda a: np.asarray(a[i]), diag)
-    phi = _to_physical(np.asarray(theta), free, problem.fixed)
-    # Jacobian with respect to the physical parameters: d theta / d phi per column.
-    dphi = np.array([phi[PARAMETERS.index(n)] * (1 - phi[PARAMETERS.index(n)]) if n in _BOUNDED
-                     else phi[PARAMETERS.index(n)] if n in _POSITIVE else 1.0 for n in free])
+    phi = registry.to_physical(np.asarray(theta), free, problem.fixed)
+    values = {n: float(v) for n, v in registry.unpack(phi).items()}
+    # Jacobian with respect to the physical parameters: d phi / d theta per column.
+    dphi = registry.slopes(phi, free)
     at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range
     J = np.where(at_bound[None, :], 0.0, J / np.where(at_bound, 1.0, dphi)[None, :])
     w = robust_weight(r / problem.scale, loss)
@@ -654,9 +652,10 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
     identifiable &= ~at_bound
     for k, n in enumerate(free):
         if at_bound[k]:
-            notes.append(f"{n} = {phi[PARAMETERS.index(n)]:.6f} sits on the edge of its range: no standard error")
+            notes.append(f"{n} = {values[n]:.6f} sits on the edge of its range: no standard error")
         elif not identifiable[k]:
-            notes.append(f"{n} is not identifiable from this data" + (" (no bounce observed)" if n in ("e", "mu_t") and not init.bounces else ""))
+            notes.append(f"{n} is not identifiable from this data" + (
+                " (no bounce observed)" if registry.component(n).needs_bounce and not init.bounces else ""))
     stderr = {n: math.nan for n in free}
     corr = np.full((len(free), len(free)), np.nan)
     ids = np.flatnonzero(identifiable)
@@ -684,11 +683,10 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
         notes.append("no sample lies after the fitted release time t0: nothing was fitted")
     elif not at_floor:
         notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {noise * 1e3:.2f} mm read from the data: a local minimum, or physics the model lacks (air drag)")
-        delay = float(np.min(problem.t[np.asarray(problem.mask).any(axis=1)])) - phi[PARAMETERS.index("t0")]
+        delay = float(np.min(problem.t[np.asarray(problem.mask).any(axis=1)])) - values["t0"]
         if delay > LATE_START:
-            notes.append(f"the first sample is {delay:.2f} s after the release at t0 = {phi[PARAMETERS.index('t0')]:g} s: "
+            notes.append(f"the first sample is {delay:.2f} s after the release at t0 = {values['t0']:g} s: "
                          "if the data's clock does not start at the release, shift the times so that it does")
-    values = {n: float(phi[PARAMETERS.index(n)]) for n in PARAMETERS}
     t_np = np.asarray(problem.t)
     return BallFit(
         ball=ball,

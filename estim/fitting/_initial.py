@@ -10,36 +10,32 @@ so ``w(t) = z(t) + g t^2 / 2`` is a straight line within a flight and bends upwa
 bounce (the vertical velocity jumps up by (1 + e) |v|). Flights are the maximal runs on which
 w is a line to within the noise. Two consecutive flights meet at the bounce, where the
 parabolas intersect; there ``e = -v_after / v_before`` and ``mu_t = u_after / u_before``
-(u the horizontal speed, a straight-line fit of x(t) per flight).
+(u the horizontal speed, a straight-line fit of x(t) per flight). The flights and the
+noise level come from ``estim.tracks._flights`` (:func:`split_flights`, ``robust_noise``),
+which the track readers' flight analysis shares.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-
-@dataclass(frozen=True)
-class Flight:
-    """A straight-line fit of w = z + g t^2/2 and of x over the samples of one flight."""
-
-    start: float  # first and last sample time
-    stop: float
-    w: tuple[float, float]  # w(t) = w[0] + w[1] t
-    x: tuple[float, float]  # x(t) = x[0] + x[1] t
-    n: int
-
-    def z(self, t, g):
-        return self.w[0] + self.w[1] * t - 0.5 * g * t * t
-
-    def vz(self, t, g):
-        return self.w[1] - g * t
+from ..tracks._flights import Flight, robust_std, split_flights
 
 
 @dataclass(frozen=True)
 class Initial:
-    """Starting values read from the flights of one track."""
+    """Starting values read from the flights of one track.
+
+    The release state is in the scene's coordinates. ``y0`` and ``vy0`` are ``None`` where
+    the data does not say (a track without y: the fit then takes the ball's y in the
+    scene and no lateral speed). ``flights`` are fitted in the ball's plane of travel: their
+    ``x`` lines are the horizontal coordinate along ``direction`` (the unit horizontal
+    vector of the motion; ``(1, 0, 0)`` for a track without y), their ``w`` lines the height.
+    """
 
     e: float
     mu_t: float
@@ -50,77 +46,19 @@ class Initial:
     flights: tuple[Flight, ...] = field(default=())
     bounces: tuple[float, ...] = field(default=())  # times where consecutive flights meet
     noise: float = float("nan")  # robust noise estimate of the heights (m)
+    y0: float | None = None
+    vy0: float | None = None
+    direction: tuple[float, float, float] = (1.0, 0.0, 0.0)
 
+    @property
+    def position(self) -> tuple[float, float | None, float]:
+        """The release position (x0, y0, z0) read from the data (m)."""
+        return (self.x0, self.y0, self.z0)
 
-def robust_noise(t, z, g):
-    """Noise level of z from second differences of w (robust: median absolute deviation).
-
-    For evenly spaced samples inside a flight the second difference of w is pure noise
-    with standard deviation sqrt(6) sigma."""
-    w = z + 0.5 * g * t * t
-    if len(w) < 5:
-        return float("nan")
-    d2 = w[2:] - 2 * w[1:-1] + w[:-2]
-    mad = np.median(np.abs(d2 - np.median(d2)))
-    return float(1.4826 * mad / np.sqrt(6.0))
-
-
-def _line(t, y):
-    A = np.stack([np.ones_like(t), t], axis=1)
-    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-    return coef
-
-
-def split_flights(t, x, z, g, *, noise=None, min_points=4):
-    """Greedy segmentation of a track into flights (see the module docstring).
-
-    A run grows while the next sample lies on the run's line of w to within
-    ``max(6 sigma, 1 mm)``; a sample off the line is an outlier if the one after it is back on
-    the line, and a bounce if the next ``min_points - 1`` samples also leave it upward. Runs
-    shorter than ``min_points``, or without vertical motion beyond the noise (a height range
-    below 8 sigma, at least 3 mm: the unresolved tail of a Zeno series, or a ball at rest),
-    end the segmentation. (The range of pure noise over a hundred samples is about 5 sigma;
-    the bound used to be 3 times the line tolerance, 18 sigma, which in 3 mm noise ended the
-    segmentation at the first flight lower than 5 cm.)
-    """
-    ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(z)
-    t, x, z = t[ok], x[ok], z[ok]
-    sigma = robust_noise(t, z, g) if noise is None else noise
-    level = sigma if np.isfinite(sigma) else 0.002
-    tol = max(6.0 * level, 1e-3)
-    still = max(8.0 * level, 3e-3)  # a height range below this is no vertical motion
-    w = z + 0.5 * g * t * t
-    flights = []
-    i, n = 0, len(t)
-    while i + min_points <= n:
-        members = list(range(i, i + min_points))
-        coef = _line(t[members], w[members])
-        if np.max(np.abs(w[members] - (coef[0] + coef[1] * t[members]))) > 4 * tol:
-            i += 1  # the seed of a run straddles a bounce or an outlier: move on
-            continue
-        j = i + min_points
-        while j < n:
-            res = w[j] - (coef[0] + coef[1] * t[j])
-            if abs(res) <= tol:
-                members.append(j)
-                coef = _line(t[members], w[members])
-                j += 1
-                continue
-            ahead = range(j + 1, min(j + min_points, n))
-            back = [k for k in ahead if abs(w[k] - (coef[0] + coef[1] * t[k])) <= tol]
-            if back:  # an isolated outlier
-                j += 1
-                continue
-            break
-        if np.ptp(z[members]) < still:
-            if not flights:  # still in the hand before the release: skip
-                i = j
-                continue
-            break  # no vertical motion: the ball rests, or its bounces are no longer resolved
-        xc = _line(t[members], x[members])
-        flights.append(Flight(float(t[members[0]]), float(t[members[-1]]), tuple(coef), tuple(xc), len(members)))
-        i = j
-    return flights, sigma
+    @property
+    def velocity(self) -> tuple[float, float | None, float]:
+        """The release velocity (vx0, vy0, vz0) read from the data (m/s)."""
+        return (self.vx0, self.vy0, self.vz0)
 
 
 # Where a start for e or mu_t is clipped to (a median of one or two noisy bounces can fall
@@ -171,7 +109,7 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
         res.append(xx[inside] - (f.x[0] + f.x[1] * tt[inside]))
     res = np.concatenate(res) if res else np.zeros(0)
     if res.size > 4 * len(flights) + 4:
-        mad = 1.4826 * np.median(np.abs(res - np.median(res)))
+        mad = robust_std(res)
         from_flights = float(mad * np.sqrt(res.size / (res.size - 4 * len(flights))))
         # Few samples in flights (a ball that soon rests): do not trust a small estimate.
         sigma = from_flights if res.size >= TRUSTED_RESIDUALS or not np.isfinite(sigma) else max(from_flights, sigma)
@@ -188,3 +126,84 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
         bounces=tuple(bounces),
         noise=sigma,
     )
+
+
+def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT, mu_default=MU_DEFAULT):
+    """Starting values for one track in the ball's plane of travel, in the scene's coordinates.
+
+    Gravity ``g`` (a vector, m/s^2) sets the vertical ``up = -g / |g|``; a sample ``p`` has
+    the height ``h = p . up`` and the horizontal part ``p_h = p - h up``. The direction of
+    travel ``u`` is the horizontal direction along which the samples spread most (the first
+    principal axis of ``p_h``, oriented so that the ball moves along +u as time goes on), and
+    ``w = up x u`` the lateral direction. In the vertical plane of travel the track is
+    ``(s, h) = (p_h . u, p . up)``: :func:`initial_guess` splits it into flights and reads
+    e, mu_t (from the speed along u, which an impact scales by mu_t), the speed along u and
+    the release point in that plane; a straight line through the lateral coordinate
+    ``l = p_h . w`` of the first flight gives the lateral release point and speed. Then
+
+        position = s0 u + l0 w + h0 up,    velocity = v_s u + v_l w + v_h up.
+
+    A ball thrown along y gets the same starts as one thrown along x (the projection on x
+    would read no horizontal speed, and so no mu_t). A track without y (a side view) is
+    read in the x-z plane as it is: ``initial_guess(t, x, z, |g|)``, which needs gravity
+    along -z.
+
+    Args:
+        t: ``(n,)`` sample times (s).
+        position: ``(n, 3)`` positions (m), NaN where a coordinate was not measured.
+        gravity: the gravity vector (m/s^2), e.g. ``(0, 0, -9.81)``.
+        release_time: the model's t = 0 on the data's clock (s).
+
+    Raises:
+        ValueError: a zero or non-finite gravity; a track without y under a gravity that
+            does not point along -z; no flight resolved in the track.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    pos = np.asarray(position, dtype=np.float64)
+    gravity = np.asarray(gravity, dtype=np.float64)
+    g = float(np.linalg.norm(gravity))
+    if not (math.isfinite(g) and g > 0):
+        raise ValueError(f"gravity must be a finite non-zero vector, got {gravity.tolist()}")
+    up = -gravity / g
+    options = dict(release_time=release_time, e_default=e_default, mu_default=mu_default)
+    if not np.isfinite(pos[:, 1]).any():
+        if not np.array_equal(up, (0.0, 0.0, 1.0)):
+            raise ValueError(f"a track without y (a side view in the x-z plane) needs gravity along -z, "
+                             f"got {gravity.tolist()}")
+        return initial_guess(t, pos[:, 0], pos[:, 2], g, **options)
+    h = pos @ up
+    horizontal = pos - h[:, None] * up
+    u = _direction_of_travel(t, horizontal, up)
+    w = np.cross(up, u)
+    init = initial_guess(t, horizontal @ u, h, g, **options)
+    f0 = init.flights[0]
+    lateral = horizontal @ w
+    inside = np.isfinite(t) & np.isfinite(lateral) & (t >= f0.start) & (t <= f0.stop)
+    if inside.sum() >= 2:
+        design = np.stack([np.ones(int(inside.sum())), t[inside]], axis=1)
+        l0, vl = np.linalg.lstsq(design, lateral[inside], rcond=None)[0]
+    else:  # no lateral sample in the first flight: no lateral speed to read
+        l0, vl = float(np.nanmedian(lateral)), 0.0
+    t0 = release_time
+    release = init.x0 * u + (l0 + vl * t0) * w + init.z0 * up
+    speed = init.vx0 * u + vl * w + init.vz0 * up
+    return dataclasses.replace(
+        init, x0=float(release[0]), y0=float(release[1]), z0=float(release[2]),
+        vx0=float(speed[0]), vy0=float(speed[1]), vz0=float(speed[2]), direction=tuple(float(c) for c in u),
+    )
+
+
+def _direction_of_travel(t, horizontal, up):
+    """Unit horizontal vector along which the samples spread most (first principal axis of
+    their horizontal parts), pointing the way the ball moves; the first horizontal axis of
+    the scene where the samples do not move horizontally at all."""
+    ok = np.isfinite(t) & np.all(np.isfinite(horizontal), axis=1)
+    d = horizontal[ok] - horizontal[ok].mean(axis=0) if ok.sum() >= 2 else np.zeros((0, 3))
+    if not np.any(d):
+        axes = np.eye(3) - np.outer(up, up)  # the scene's axes projected on the horizontal plane
+        u = axes[np.argmax(np.linalg.norm(axes, axis=1))]
+        return u / np.linalg.norm(u)
+    u = np.linalg.svd(d, full_matrices=False)[2][0]
+    u = u - (u @ up) * up
+    u = u / np.linalg.norm(u)
+    return -u if np.sum((d @ u) * (t[ok] - t[ok].mean())) < 0 else u

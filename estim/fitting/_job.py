@@ -7,12 +7,8 @@ import os
 import numpy as np
 
 from ..model._scene import Scene, load_scene
-from ..tracks._tracks import (
-    estimate_pixel_scale,
-    estimate_surface_row,
-    read_pixel_track,
-    read_tracks_csv,
-)
+from ..tracks._csv import read_tracks_csv
+from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
 from ._fit import fit
 from ._initial import initial_guess, split_flights
 

@@ -34,16 +34,26 @@ def _save(fig: Figure, path) -> Figure:
     return fig
 
 
+def _axes_of(data: dict, balls) -> tuple[tuple[int, str], ...]:
+    """The coordinates to draw, (index, name): z and x, and y where any track has one (a
+    ball thrown along y moves in y, not in x)."""
+    has_y = any(np.isfinite(np.asarray(data[b][1], np.float64)[:, 1]).any() for b in balls)
+    return ((2, "z"), (0, "x")) + (((1, "y"),) if has_y else ())
+
+
 def plot_fit(data: dict, result: FitResult, path=None) -> Figure:
-    """Measured positions (markers; outliers crossed) and the fitted model (lines), x and z."""
-    fig = Figure(figsize=(8, 6.4), layout="tight")
-    axes = fig.subplots(2, 1, sharex=True)
+    """Measured positions (markers; outliers crossed) and the fitted model (lines), z and
+    x, and y where the tracks have it. The model is the fit's own solution at the samples,
+    so it carries every fitted parameter (the release state in 3D, drag, spin, ...)."""
+    coords = _axes_of(data, result.balls)
+    fig = Figure(figsize=(8, 3.2 * len(coords)), layout="tight")
+    axes = fig.subplots(len(coords), 1, sharex=True)
     for i, (ball, bf) in enumerate(result.balls.items()):
         t, pos = data[ball]
         c = _colour(ball, i)
         n = len(t)
         out = np.abs(bf.residuals[:n]) > 5 * bf.noise_m
-        for ax, k, name in ((axes[0], 2, "z"), (axes[1], 0, "x")):
+        for ax, (k, name) in zip(axes, coords, strict=True):
             ok = np.isfinite(pos[:, k])
             ax.plot(t[ok & ~out[:, k]], pos[ok & ~out[:, k], k], "o", ms=2.5, color=c, alpha=0.55,
                     label=f"{ball} measured" if k == 2 else None)
@@ -56,12 +66,14 @@ def plot_fit(data: dict, result: FitResult, path=None) -> Figure:
             ax.grid(alpha=0.25)
     axes[0].set_title("Tracked positions and the fitted hybrid model")
     axes[0].legend(fontsize=7, ncol=2)
-    axes[1].set_xlabel("t [s]")
+    axes[-1].set_xlabel("t [s]")
     return _save(fig, path)
 
 
 def plot_residuals(data: dict, result: FitResult, path=None) -> Figure:
-    """Residuals (model - measured) in x and z over time, per ball, in millimetres."""
+    """Residuals (model - measured) in x and z (and y where the tracks have it) over time,
+    per ball, in millimetres."""
+    coords = sorted(_axes_of(data, result.balls))
     fig = Figure(figsize=(8, 2.2 * len(result.balls) + 0.6), layout="tight")
     axes = fig.subplots(len(result.balls), 1, sharex=True, squeeze=False)
     for i, (ball, bf) in enumerate(result.balls.items()):
@@ -69,7 +81,8 @@ def plot_residuals(data: dict, result: FitResult, path=None) -> Figure:
         t, _ = data[ball]
         n = len(t)
         r = bf.residuals[:n] * 1e3
-        for k, name, m in ((0, "x", "."), (2, "z", "+")):
+        for k, name in coords:
+            m = {"x": ".", "y": "x", "z": "+"}[name]
             ok = np.isfinite(data[ball][1][:, k])
             ax.plot(t[ok], r[ok, k], m, ms=3, label=f"{name}")
         band = bf.noise_m * 1e3

@@ -30,7 +30,7 @@ import shutil
 import subprocess
 import sys
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 # MuJoCo picks its OpenGL backend when it is first imported; estim/__init__.py sets the
 # same default before any estim module imports mujoco. Repeated here for code that imports
@@ -41,10 +41,11 @@ if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.env
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..fitting import _registry as registry  # noqa: E402
+from ..fitting._fit import DEFAULT_FREE  # noqa: E402
 from ..forward._simulate import simulate  # noqa: E402
-from ..model._params import Params  # noqa: E402
 from ..model._scene import Scene, load_scene, scene_from_model  # noqa: E402
-from ..tracks._tracks import Tracks, read_tracks_csv  # noqa: E402
+from ..tracks._csv import Tracks, read_tracks_csv  # noqa: E402
 from ._plots import COLOURS  # noqa: E402
 
 __all__ = [
@@ -98,8 +99,13 @@ class ReplayMotion:
             frame); where the data has no y, the model's y.
         samples: ``ball -> (t (n,), position (n, 3))`` every measured sample (y filled as in
             ``measured``), for trails.
-        params: ``ball -> {"e", "mu_t", "vx0"}`` the fitted values, for captions.
+        params: ``ball -> {name: value}`` the values the model was replayed with: every
+            parameter of the registry (``estim.fitting._registry``; the fit's, else the
+            default). Captions show e, mu_t, vx0 and the parameters the fit estimated besides
+            (``free``) that the registry shows where fitted (vy0, the drag coefficient, the
+            spin, ...); a ``params`` holding only some of them shows those.
         radius: ``ball -> radius`` (m) from the scene.
+        free: ``ball -> names`` of the parameters the fit estimated (empty: not known).
     """
 
     balls: tuple[str, ...]
@@ -110,6 +116,12 @@ class ReplayMotion:
     samples: dict[str, tuple[np.ndarray, np.ndarray]]
     params: dict[str, dict[str, float]]
     radius: dict[str, float]
+    free: dict[str, tuple[str, ...]] = field(default_factory=dict)
+
+    def caption(self, ball: str, *, sep: str = "   ") -> str:
+        """``"e = 0.580   mu_t = 0.950   vx0 = 0.500 m/s"``: the parameters a caption shows
+        for ``ball`` (``estim.fitting._registry.describe``)."""
+        return registry.describe(self.params[ball], self.free.get(ball, ()), sep=sep)
 
     @property
     def n_frames(self) -> int:
@@ -130,10 +142,14 @@ def frame_times(t_start: float, t_end: float, fps: float) -> np.ndarray:
     return float(t_start) + np.arange(n) / float(fps)
 
 
-def _read_fit(fit) -> dict[str, dict]:
-    """``ball -> values`` from a fit.json path, its parsed object, or a FitResult."""
+def _read_fit(fit) -> dict[str, tuple[dict, tuple[str, ...]]]:
+    """``ball -> (values, fitted names)`` from a fit.json path, its parsed object, or a
+    FitResult. The values are the registry's parameters that the fit gives (fit.json
+    holds them under their names, beside its statistics); every fit gives at least
+    ``DEFAULT_FREE`` (e, mu_t, vx0, x0, z0), the replay takes the others' defaults."""
     if hasattr(fit, "balls") and not isinstance(fit, Mapping):  # a FitResult
-        return {b: dict(bf.values) for b, bf in fit.balls.items()}
+        return {b: ({k: v for k, v in bf.values.items() if k in registry.NAMES}, tuple(bf.names))
+                for b, bf in fit.balls.items()}
     if isinstance(fit, (str, os.PathLike)):
         path = os.fspath(fit)
         if not os.path.isfile(path):
@@ -150,11 +166,24 @@ def _read_fit(fit) -> dict[str, dict]:
         raise ValueError(f"{where}: expected an object with 'balls' (as `estim fit` writes)")
     out = {}
     for ball, values in fit["balls"].items():
-        missing = [k for k in ("e", "mu_t", "vx0", "x0", "z0") if not isinstance(values.get(k), (int, float))]
+        if not isinstance(values, Mapping):
+            raise ValueError(f"{where}: ball {ball!r} is not an object of parameter values")
+        missing = [k for k in DEFAULT_FREE if not _is_number(values.get(k))]
         if missing:
             raise ValueError(f"{where}: ball {ball!r} has no numeric {missing}")
-        out[ball] = dict(values)
+        bad = [k for k in registry.NAMES if k in values and not _is_number(values[k])]
+        if bad:
+            raise ValueError(f"{where}: ball {ball!r}: {bad} must be numbers, got "
+                             f"{[values[k] for k in bad]}")
+        corr = values.get("correlation")
+        names = corr.get("names", ()) if isinstance(corr, Mapping) else ()
+        out[ball] = ({k: float(values[k]) for k in registry.NAMES if k in values},
+                     tuple(n for n in names if n in registry.NAMES))
     return out
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def _read_tracks(tracks, scene: Scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -172,14 +201,17 @@ def replay_motion(scene: Scene | str | os.PathLike, fit, tracks, *, fps: float =
     Args:
         scene: the scene (or its MJCF path) the fit was made in.
         fit: a fit.json path, its parsed object (``{"balls": {name: {"e", "mu_t", "vx0",
-            "x0", "z0", ...}}}``), or an :class:`estim.FitResult`. ``y0``, ``vz0``, ``vy0``
-            and ``t0`` (release time on the data's clock) default to the ball's y in the
-            scene and zero.
+            "x0", "z0", ...}}}``), or an :class:`estim.FitResult`. Every parameter of the
+            registry (``estim.fitting._registry``) that it gives is used: the release state
+            in 3D, the release time ``t0`` on the data's clock, and in a scene with air the
+            drag coefficient and the spin; the others take their defaults (``y0`` the
+            ball's y in the scene, ``vy0 = vz0 = t0 = 0``, C_D = 0.47, no spin).
         tracks: a tracks CSV path, an :class:`estim.Tracks`, or ``ball -> (t, position)``.
         fps: frames per second; frames run over the data's time span (:func:`frame_times`).
 
     Raises:
-        ValueError: a tracked ball has no fit, or is not in the scene; bad fit values.
+        ValueError: a tracked ball has no fit, or is not in the scene; bad fit values
+            (not numbers, out of range, a spin in a scene without air).
     """
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     values = _read_fit(fit)
@@ -194,17 +226,14 @@ def replay_motion(scene: Scene | str | os.PathLike, fit, tracks, *, fps: float =
     t_all = np.concatenate([data[b][0] for b in data])
     ts = frame_times(float(np.min(t_all)), float(np.max(t_all)), fps)
 
-    fitted, measured, samples, params, radius = {}, {}, {}, {}, {}
+    fitted, measured, samples, params, radius, free = {}, {}, {}, {}, {}, {}
     for b, (t, pos) in data.items():
-        v = values[b]
         spec = scene.ball(b)
-        t0 = float(v.get("t0", 0.0))
-        position = (float(v["x0"]), float(v.get("y0", spec.position[1])), float(v["z0"]))
-        velocity = (float(v["vx0"]), float(v.get("vy0", 0.0)), float(v.get("vz0", 0.0)))
+        v = registry.values_for(spec, values[b][0])
+        t0 = v["t0"]
         # Before its release time the ball waits at the release point, as in the fit.
         t_end = max(float(ts[-1]) - t0, 1e-3)
-        fitted[b] = _fitted_positions(scene, spec, float(v["e"]), float(v["mu_t"]),
-                                      position, velocity, t_end, np.clip(ts - t0, 0.0, t_end))
+        fitted[b] = _fitted_positions(scene, spec, v, t_end, np.clip(ts - t0, 0.0, t_end))
 
         t, pos = np.asarray(t, np.float64), np.asarray(pos, np.float64).copy()
         # 2-D tracks: put the samples at the model's depth, so halo and ball line up.
@@ -213,13 +242,14 @@ def replay_motion(scene: Scene | str | os.PathLike, fit, tracks, *, fps: float =
         ok = np.all(np.isfinite(pos), axis=1)
         samples[b] = (t[ok], pos[ok])
         measured[b] = _nearest_samples(t, pos, ts)
-        params[b] = {k: float(v[k]) for k in ("e", "mu_t", "vx0")}
+        params[b] = v
+        free[b] = values[b][1]
         radius[b] = float(spec.radius)
-    return ReplayMotion(tuple(data), ts, float(fps), fitted, measured, samples, params, radius)
+    return ReplayMotion(tuple(data), ts, float(fps), fitted, measured, samples, params, radius, free)
 
 
-def _fitted_positions(scene: Scene, spec, e, mu_t, position, velocity, t_end, ts) -> np.ndarray:
-    """The model's positions of one ball at times ``ts``.
+def _fitted_positions(scene: Scene, spec, values, t_end, ts) -> np.ndarray:
+    """The model's positions of one ball at times ``ts``, for the registry's ``values``.
 
     One unbatched ``simulate`` with the default sample times, then the dense solution at
     ``ts``: a new batch or sample shape would compile the whole solver again (tens of
@@ -229,8 +259,13 @@ def _fitted_positions(scene: Scene, spec, e, mu_t, position, velocity, t_end, ts
     """
     # The mass only matters in air; leaving it out otherwise keeps the pytree (and so the
     # compiled program) that of a plain single-ball simulation.
-    mass = spec.mass if getattr(scene, "air", None) is not None else None
-    p = Params(e, mu_t, spec.radius, position, velocity, mass=mass)
+    air = getattr(scene, "air", None) is not None
+    if not air:
+        spinning = [n for n in registry.NAMES if registry.component(n).zero_without_air and values[n] != 0]
+        if spinning:
+            raise ValueError(f"ball {spec.name!r}: the fit gives {', '.join(f'{n} = {values[n]:g}' for n in spinning)}, "
+                             "which acts only in a scene with air: replay it in the scene it was fitted in")
+    p = registry.to_params(values, radius=spec.radius, mass=spec.mass if air else None, air=air)
     traj = simulate(scene, p, t_end)
     n = ts.shape[0]
     padded = np.concatenate([ts, np.full(-n % 64, ts[-1])])
@@ -543,8 +578,7 @@ class _CaptionBand:
             c = tuple(int(round(255 * v)) for v in self.colours[b])
             s = self.size
             draw.ellipse((pad, y + s * 0.15, pad + 0.8 * s, y + 0.95 * s), fill=c)
-            p = m.params[b]
-            text = f"{b:<9} e = {p['e']:.3f}   mu_t = {p['mu_t']:.3f}   vx0 = {p['vx0']:.3f} m/s"
+            text = f"{b:<9} {m.caption(b)}"
             draw.text((pad + 1.3 * s, y), text, fill=(235, 235, 235), font=self.font)
         return np.concatenate([img, np.asarray(band)], axis=0)
 

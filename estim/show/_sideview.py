@@ -78,11 +78,8 @@ class SideView:
                                         animated=True)
             self.halos[b] = ax.add_patch(Circle((0, 0), GHOST_SCALE * r, color=c, alpha=GHOST_ALPHA,
                                                 lw=0, zorder=z + 1, animated=True))
-            p = motion.params[b]
             self.balls[b] = ax.add_patch(Circle((0, 0), r, facecolor=c, edgecolor="none", zorder=z + 2,
-                                                animated=True,
-                                                label=f"{b}\ne = {p['e']:.3f}, mu_t = {p['mu_t']:.3f}\n"
-                                                      f"vx0 = {p['vx0']:.3f} m/s"))
+                                                animated=True, label=f"{b}\n{_legend_caption(motion, b)}"))
             self._order = [*getattr(self, "_order", []), b]
         ax.set_xlim(*xlim)
         ax.set_ylim(*zlim)
@@ -151,6 +148,13 @@ class SideView:
         disp = self.ax.transData.transform(p[..., [0, 2]].reshape(-1, 2))
         col, row = disp[:, 0], self.height - disp[:, 1]
         return np.stack([col, row], axis=-1).reshape(p.shape[:-1] + (2,))
+
+
+def _legend_caption(motion, ball: str) -> str:
+    """The parameters of the replay's caption, two to a line (``e = 0.580, mu_t = 0.950`` /
+    ``vx0 = 0.500 m/s`` / ...)."""
+    parts = motion.caption(ball, sep="\n").split("\n")
+    return "\n".join(", ".join(parts[i:i + 2]) for i in range(0, len(parts), 2))
 
 
 def render_sideview(scene, fit, tracks, out, *, fps: float = 25.0, width: int = 640,

@@ -17,7 +17,7 @@ import numpy as np
 from ..forward._simulate import simulate
 from ..model._params import Params
 from ..model._scene import Scene
-from ._tracks import Tracks
+from ._csv import Tracks
 
 __all__ = ["SyntheticDetails", "synthesize_tracks", "frame_times"]
 
@@ -67,7 +67,9 @@ def synthesize_tracks(
         truth: ``ball -> {"e", "mu_t", "vx0"}`` plus optionally ``"x0"``, ``"z0"``,
             ``"vz0"``; the release point defaults to the ball's position in the scene (for
             the stairs scene that is the seed release x0 = -0.20, z0 = 1.40 + r + 0.25),
-            ``vz0`` to 0; y0 is always the scene's y of the ball, vy0 = 0.
+            ``vz0`` to 0; y0 is always the scene's y of the ball, vy0 = 0. In a scene with
+            air every ball has its mass from the scene, the default drag coefficient and
+            no spin.
         t_end: duration (s); frames at ``k / frame_rate`` in ``[0, t_end]``.
         frame_rate: frames per second.
         noise: standard deviation (m) of the Gaussian noise on every coordinate.
@@ -104,7 +106,10 @@ def synthesize_tracks(
     mu = np.array([truth[b]["mu_t"] for b in balls], dtype=np.float64)
     r = np.array([s.radius for s in specs])
     ts = frame_times(t_end, frame_rate)
-    params = Params(e, mu, r, pos0, vel0)
+    # In air the drag and Magnus accelerations scale with 1 / mass: every ball's mass from
+    # the scene (a vacuum needs none, and gets none, so that its program stays the same).
+    mass = None if scene.air is None else np.array([s.mass for s in specs])
+    params = Params(e, mu, r, pos0, vel0, mass=mass)
     traj = simulate(scene, params, float(t_end), ts=jnp.asarray(ts))
     exact_all = np.asarray(traj.position)  # (B, n, 3)
 

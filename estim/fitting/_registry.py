@@ -1,0 +1,441 @@
+"""The fit's parameters: one registry entry per fittable quantity.
+
+Every quantity a fit can estimate is one :class:`Parameter` in :data:`REGISTRY` (in the
+spirit of mujoco's ``sysid`` ``Parameter``): its name, where it lives in
+:class:`estim.Params` (a field, and for a vector its components: the release position
+``x0 y0 z0``, velocity ``vx0 vy0 vz0`` and spin ``spin_x spin_y spin_z``), the transform to
+unconstrained coordinates, its default, how the data gives a start, its unit and a line of
+documentation. The fit, the command line, fit.json, the replay and the plots loop over the
+registry; nothing indexes the parameters by position. Adding a parameter is one entry.
+
+The flat names (:data:`NAMES`: ``e``, ``mu_t``, ``x0``, ..., ``spin_z``) are the names of
+every component, in registry order; they are what ``estim.fit(free=..., fixed=...)``,
+``estim fit --also`` and fit.json use. A fit works on two vectors:
+
+- ``phi``, the physical values of every component in the order of :data:`NAMES`
+  (:func:`pack`, :func:`unpack`);
+- ``theta``, the unconstrained coordinates of the fitted components, in the order of
+  ``free``: ``phi_k = T_k(theta_k)`` with ``T`` the component's transform:
+
+      identity:  phi = theta                                  (a position, a speed, t0, spin)
+      sigmoid:   phi = 1 / (1 + exp(-theta)),  in (0, 1)      (e, mu_t)
+      exp:       phi = exp(theta),             in (0, inf)    (the drag coefficient)
+
+  Constraints hold by reparametrisation, never by clipping; the inverse clips only a start
+  that lies on the edge of the range (``logit`` of 0 or 1 is infinite).
+
+Adding a fit parameter is one entry of :data:`REGISTRY`. The ball's radius, say (a field of
+:class:`estim.Params`, positive, by default the scene's value, no start from the data)::
+
+    Parameter("radius", field="radius", transform=Exp(), default=lambda ball: (ball.radius,),
+              unit="m", doc="ball radius")
+
+With it, ``estim.fit(..., free=(..., "radius"))`` and ``estim fit --also radius`` fit it
+(with a standard error), fit.json holds it, ``estim replay`` replays with it, ``estim
+simulate --radius`` sets it, and the table and captions show it where it was fitted. A
+parameter that acts only in air says ``needs_air=True``; one the data can start from gives
+``start=lambda initial: (...)`` (``estim.fitting._initial.Initial``). A quantity that is not
+yet a field of ``Params`` needs that field first (and the forward model to use it).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model._params import DRAG_COEFFICIENT, Params
+from ..model._scene import Ball
+from ._initial import E_DEFAULT, MU_DEFAULT, Initial
+from ._loss import array_namespace
+
+__all__ = [
+    "AbstractTransform", "Exp", "Identity", "NAMES", "Parameter", "REGISTRY", "Sigmoid",
+    "component", "defaults", "describe", "expand", "index", "pack", "shown", "slopes",
+    "starting_values", "to_params", "to_physical", "to_theta", "unpack", "value", "values_for",
+    "with_values",
+]
+
+
+# --------------------------------------------------------------------------- transforms
+
+
+class AbstractTransform(eqx.Module):
+    """A bijection ``phi = T(theta)`` from the real line onto a parameter's range.
+
+    Each method takes NumPy or JAX arrays and answers in kind (``xp`` is the namespace).
+    """
+
+    @abc.abstractmethod
+    def physical(self, theta, xp):
+        """``phi = T(theta)``."""
+
+    @abc.abstractmethod
+    def unconstrained(self, phi, xp):
+        """``theta = T^-1(phi)`` (a start on the edge of the range is moved just inside)."""
+
+    @abc.abstractmethod
+    def slope(self, phi):
+        """``d phi / d theta`` at ``phi`` (the chain rule from theta to the physical value)."""
+
+    @abc.abstractmethod
+    def refuse(self, value: float) -> str | None:
+        """Why ``value`` cannot be held fixed (outside the closed range), or ``None``."""
+
+
+class Identity(AbstractTransform):
+    """``phi = theta``: any real value."""
+
+    def physical(self, theta, xp):
+        return theta
+
+    def unconstrained(self, phi, xp):
+        return phi
+
+    def slope(self, phi):
+        return 1.0
+
+    def refuse(self, value):
+        return None
+
+
+class Sigmoid(AbstractTransform):
+    """``phi = 1 / (1 + exp(-theta))`` in (0, 1); ``theta = log(phi) - log(1 - phi)`` with
+    phi clipped to ``[1e-6, 1 - 1e-6]``; ``d phi / d theta = phi (1 - phi)``."""
+
+    def physical(self, theta, xp):
+        if xp is jnp:
+            return jax.nn.sigmoid(theta)
+        with np.errstate(over="ignore"):
+            return 1.0 / (1.0 + np.exp(-theta))
+
+    def unconstrained(self, phi, xp):
+        phi = xp.clip(phi, 1e-6, 1 - 1e-6)
+        return xp.log(phi) - xp.log1p(-phi)
+
+    def slope(self, phi):
+        return phi * (1 - phi)
+
+    def refuse(self, value):
+        return None if 0.0 <= value <= 1.0 else "must lie in [0, 1]"
+
+
+class Exp(AbstractTransform):
+    """``phi = exp(theta)`` in (0, inf); ``theta = log(max(phi, 1e-6))``;
+    ``d phi / d theta = phi``."""
+
+    def physical(self, theta, xp):
+        return xp.exp(theta)
+
+    def unconstrained(self, phi, xp):
+        return xp.log(xp.maximum(phi, 1e-6))
+
+    def slope(self, phi):
+        return phi
+
+    def refuse(self, value):
+        return None if value > 0 else "must be > 0"
+
+
+# --------------------------------------------------------------------------- entries
+
+
+def _per_component(value, n: int, what: str) -> tuple:
+    out = tuple(value) if isinstance(value, (tuple, list)) else (value,) * n
+    if len(out) != n:
+        raise ValueError(f"Parameter: {what} has {len(out)} items for {n} components")
+    return out
+
+
+class Parameter(eqx.Module):
+    """One fittable quantity (a scalar, or a vector with components).
+
+    Attributes:
+        name: the entry's name: the component's name for a scalar (``"e"``), the
+            :class:`estim.Params` field's for a vector (``"velocity"``).
+        field: the field of :class:`estim.Params` that holds it; ``None`` for the release
+            time ``t0``, which is the model's t = 0 on the data's clock, not a field.
+        components: the flat names of its components (``("vx0", "vy0", "vz0")``); a scalar
+            has one, its own name.
+        transform: to unconstrained coordinates (:class:`Identity`, :class:`Sigmoid`,
+            :class:`Exp`).
+        default: ``ball -> values`` (one per component) where neither the data nor the
+            caller gives one; ``ball`` is the scene's :class:`estim.Ball` (its release
+            point, radius and mass).
+        start: ``initial -> values`` read from the data (:class:`Initial`, the track's
+            flights in the ball's plane of travel), ``None`` for a component the data does
+            not give; ``None``: no start from the data.
+        hold_start: per component, whether a component that is not fitted is held at the
+            data's start (``True``) or at its default (``False``: a release straight from the
+            hand, ``vz0 = 0``, unless ``vz0`` is fitted).
+        show: per component, ``"always"`` (a column of the fit's table and of the replay's
+            captions), ``"fitted"`` (shown where it is fitted) or ``"never"`` (the release
+            point: it lies in the plots).
+        unit: the unit of every component (``""``: none).
+        doc: one line for help texts.
+        needs_air: fitting it needs a scene with air (it changes nothing in a vacuum).
+        zero_without_air: :class:`estim.Params` requires it to be zero in a scene without air.
+        needs_bounce: the data determines it only through bounces (a note says so when
+            none is resolved).
+    """
+
+    name: str
+    field: str | None
+    components: tuple[str, ...]
+    transform: AbstractTransform
+    default: Callable[[Ball], tuple[float, ...]]
+    start: Callable[[Initial], tuple[float | None, ...]] | None
+    hold_start: tuple[bool, ...]
+    show: tuple[str, ...]
+    unit: str
+    doc: str
+    needs_air: bool
+    zero_without_air: bool
+    needs_bounce: bool
+
+    def __init__(self, name: str, *, field: str | None, default, components: Iterable[str] | None = None,
+                 transform: AbstractTransform | None = None, start=None, hold_start=True,
+                 show="fitted", unit: str = "", doc: str = "", needs_air: bool = False,
+                 zero_without_air: bool = False, needs_bounce: bool = False):
+        self.name = name
+        self.field = field
+        self.components = (name,) if components is None else tuple(components)
+        n = len(self.components)
+        self.transform = Identity() if transform is None else transform
+        if callable(default):
+            self.default = default
+        else:
+            values = _per_component(default, n, "default")
+            self.default = lambda ball: values
+        self.start = start
+        self.hold_start = _per_component(hold_start, n, "hold_start")
+        self.show = _per_component(show, n, "show")
+        self.unit = unit
+        self.doc = doc
+        self.needs_air = needs_air
+        self.zero_without_air = zero_without_air
+        self.needs_bounce = needs_bounce
+
+    def __check_init__(self):
+        bad = [s for s in self.show if s not in ("always", "fitted", "never")]
+        if bad:
+            raise ValueError(f"Parameter {self.name!r}: show must be 'always', 'fitted' or 'never', got {bad}")
+
+    def label(self, component: str) -> str:
+        """``"vx0 (m/s)"``: the component's name with the unit, for tables and axes."""
+        return f"{component} ({self.unit})" if self.unit else component
+
+
+REGISTRY: tuple[Parameter, ...] = (
+    Parameter("e", field="e", transform=Sigmoid(), default=E_DEFAULT, start=lambda s: (s.e,),
+              show="always", needs_bounce=True,
+              doc="coefficient of restitution: an impact turns the normal velocity into -e times itself"),
+    Parameter("mu_t", field="mu_t", transform=Sigmoid(), default=MU_DEFAULT, start=lambda s: (s.mu_t,),
+              show="always", needs_bounce=True,
+              doc="tangential coefficient: an impact scales the tangential velocity by mu_t"),
+    Parameter("position", field="position", components=("x0", "y0", "z0"), unit="m",
+              default=lambda ball: tuple(ball.position), start=lambda s: s.position, show="never",
+              doc="release position of the ball's centre"),
+    Parameter("velocity", field="velocity", components=("vx0", "vy0", "vz0"), unit="m/s",
+              default=(0.0, 0.0, 0.0), start=lambda s: s.velocity, hold_start=(True, True, False),
+              show=("always", "fitted", "fitted"), doc="release velocity"),
+    Parameter("t0", field=None, unit="s", default=0.0,
+              doc="release time on the data's clock (the model's t = 0)"),
+    Parameter("drag_coefficient", field="drag_coefficient", transform=Exp(), default=DRAG_COEFFICIENT,
+              needs_air=True, doc="drag coefficient C_D of the quadratic drag"),
+    Parameter("spin", field="spin", components=("spin_x", "spin_y", "spin_z"), unit="rad/s",
+              default=(0.0, 0.0, 0.0), needs_air=True, zero_without_air=True,
+              doc="angular velocity (constant) for the Magnus force"),
+)
+
+# Every component, in registry order: the layout of the fit's vector phi.
+NAMES: tuple[str, ...] = tuple(c for p in REGISTRY for c in p.components)
+_ENTRY = {c: p for p in REGISTRY for c in p.components}
+_INDEX = {c: i for i, c in enumerate(NAMES)}
+
+
+def _check_registry() -> None:
+    """Components are unique, and a vector's name is no component's (``expand`` reads it)."""
+    if len(set(NAMES)) != len(NAMES):
+        raise ValueError(f"the registry names a component twice: {NAMES}")
+    vectors = [p.name for p in REGISTRY if p.components != (p.name,)]
+    clash = [n for n in vectors if n in NAMES]
+    if clash:
+        raise ValueError(f"registry entries named like a component: {clash}")
+    fields = [p.field for p in REGISTRY if p.field is not None]
+    if len(set(fields)) != len(fields):
+        raise ValueError(f"two registry entries write the same Params field: {fields}")
+
+
+_check_registry()
+
+
+def component(name: str) -> Parameter:
+    """The entry that holds the component ``name``.
+
+    Raises:
+        ValueError: an unknown name, listing the known ones.
+    """
+    try:
+        return _ENTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown parameter {name!r}; the parameters are {NAMES}") from None
+
+
+def expand(names: Iterable[str]) -> tuple[str, ...]:
+    """Flat component names for ``names``, where a vector entry's name stands for all its
+    components (``"spin"`` -> ``spin_x, spin_y, spin_z``); order kept, repeats dropped.
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    vectors = {p.name: p.components for p in REGISTRY if p.components != (p.name,)}
+    out = []
+    for n in names:
+        for c in vectors.get(n, (n,)):
+            component(c)  # raises for an unknown name
+            if c not in out:
+                out.append(c)
+    return tuple(out)
+
+
+def index(names: Iterable[str]) -> np.ndarray:
+    """Positions of the components ``names`` in the vector phi."""
+    return np.array([_INDEX[n] for n in names], dtype=np.int64)
+
+
+def value(phi, name: str):
+    """The component ``name`` of the vector phi."""
+    return phi[_INDEX[name]]
+
+
+def pack(values: Mapping[str, float]) -> np.ndarray:
+    """The vector phi of ``values`` (one float64 per name of :data:`NAMES`, all required)."""
+    missing = [n for n in NAMES if n not in values]
+    if missing:
+        raise ValueError(f"no value for {missing}")
+    return np.array([values[n] for n in NAMES], dtype=np.float64)
+
+
+def unpack(phi) -> dict[str, Any]:
+    """``name -> phi[k]`` for every component (NumPy or JAX scalars, as phi holds them)."""
+    return {n: phi[i] for i, n in enumerate(NAMES)}
+
+
+def to_physical(theta, free: tuple[str, ...], fixed):
+    """phi: ``fixed`` (every component) with the fitted components ``free`` at
+    ``T(theta)``; NumPy in, NumPy out (a copy), JAX in, JAX out."""
+    xp = array_namespace(theta)
+    values = [component(n).transform.physical(theta[i], xp) for i, n in enumerate(free)]
+    if xp is np:
+        out = np.array(fixed, dtype=np.float64)
+        out[index(free)] = values
+        return out
+    return fixed.at[index(free)].set(jnp.stack(values))
+
+
+def to_theta(phi, free: tuple[str, ...]):
+    """theta: the unconstrained coordinates of the components ``free`` of phi."""
+    xp = array_namespace(phi)
+    return xp.stack([component(n).transform.unconstrained(value(phi, n), xp) for n in free])
+
+
+def slopes(phi, free: tuple[str, ...]) -> np.ndarray:
+    """``d phi_k / d theta_k`` for the components ``free`` at phi (NumPy)."""
+    return np.array([component(n).transform.slope(value(phi, n)) for n in free], dtype=np.float64)
+
+
+def defaults(ball: Ball) -> dict[str, float]:
+    """Every component's default for the scene's ball ``ball``."""
+    out = {}
+    for p in REGISTRY:
+        out.update(zip(p.components, (float(v) for v in p.default(ball)), strict=True))
+    return out
+
+
+def starting_values(ball: Ball, initial: Initial, free: Iterable[str]) -> dict[str, float]:
+    """Every component's starting value: the data's start (``Parameter.start``) for a
+    fitted component, and for a fixed one where ``hold_start`` says so; else the default."""
+    free = set(free)
+    out = {}
+    for p in REGISTRY:
+        data = p.start(initial) if p.start is not None else (None,) * len(p.components)
+        for c, d, s, hold in zip(p.components, p.default(ball), data, p.hold_start, strict=True):
+            out[c] = float(s) if s is not None and (hold or c in free) else float(d)
+    return out
+
+
+def _stack(values):
+    return jnp.stack(values) if len(values) > 1 else values[0]
+
+
+def to_params(values: Mapping[str, Any], *, radius, mass=None, air: bool = True) -> Params:
+    """The :class:`estim.Params` of ``values`` (``name -> value`` for every component whose
+    entry has a field; NumPy, JAX or Python numbers) for a ball of ``radius`` (and ``mass``,
+    which only a scene with air needs: ``None`` keeps the pytree of a plain simulation).
+
+    With ``air=False`` (a scene without air) the entries that act only in air
+    (``needs_air``) keep the defaults of :class:`estim.Params`, as constants: they change
+    nothing there, and a traced value would only add work to the compiled program."""
+    fields: dict[str, Any] = {"radius": radius, "mass": mass}
+    for p in REGISTRY:
+        if p.field is not None and (air or not p.needs_air):
+            fields[p.field] = _stack([values[c] for c in p.components])
+    return Params(**fields)
+
+
+def with_values(params: Params, values: Mapping[str, Any]) -> Params:
+    """``params`` with the components ``values`` (``name -> value``) replaced, the others
+    kept: for derivatives with respect to a few components of given parameters."""
+    for name, v in values.items():
+        p = component(name)
+        if p.field is None:
+            raise ValueError(f"{name} is not a field of Params")
+        old = getattr(params, p.field)
+        new = v if p.components == (name,) else old.at[..., p.components.index(name)].set(v)
+        params = eqx.tree_at(lambda q, f=p.field: getattr(q, f), params, jnp.asarray(new, dtype=jnp.float64))
+    return params
+
+
+def values_for(ball: Ball, given: Mapping[str, Any]) -> dict[str, float]:
+    """Every component: ``given`` where it names one, else the default for ``ball``.
+
+    Raises:
+        ValueError: a value that is not a finite number.
+    """
+    out = defaults(ball)
+    for name, v in given.items():
+        component(name)
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(float(v)):
+            raise ValueError(f"{name} = {v!r} is not a finite number")
+        out[name] = float(v)
+    return out
+
+
+def shown(values: Mapping[str, float], fitted: Iterable[str] = ()) -> list[str]:
+    """The components a table or a caption shows: those shown ``"always"`` and the
+    ``"fitted"`` ones among ``fitted``, in registry order, restricted to ``values``."""
+    fitted = set(fitted)
+    out = []
+    for p in REGISTRY:
+        for c, how in zip(p.components, p.show, strict=True):
+            if c in values and (how == "always" or (how == "fitted" and c in fitted)):
+                out.append(c)
+    return out
+
+
+def describe(values: Mapping[str, float], fitted: Iterable[str] = (), *, sep: str = "   ") -> str:
+    """``"e = 0.580   mu_t = 0.950   vx0 = 0.500 m/s"``: the components :func:`shown`
+    (a caption's line)."""
+    parts = []
+    for c in shown(values, fitted):
+        unit = _ENTRY[c].unit
+        parts.append(f"{c} = {float(values[c]):.3f}" + (f" {unit}" if unit else ""))
+    return sep.join(parts)
