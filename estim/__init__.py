@@ -30,6 +30,9 @@ from .forward._trajectory import ClosedFormSolution as ClosedFormSolution
 from .forward._trajectory import Events as Events
 from .forward._trajectory import State as State
 from .forward._trajectory import Trajectory as Trajectory
+from .forward.laws import AbstractContactLaw as AbstractContactLaw
+from .forward.laws import AbstractSummableLaw as AbstractSummableLaw
+from .forward.laws import FactorLaw as FactorLaw
 from .model._air import Air as Air
 from .model._air import acceleration as acceleration
 from .model._air import air_acceleration as air_acceleration

@@ -130,3 +130,25 @@ def test_no_links_to_the_old_docs_paths():
     stale = [f"{f.relative_to(ROOT)}:{i + 1}" for f in files if f.is_file()
              for i, line in enumerate(f.read_text().splitlines()) if old.search(line)]
     assert not stale, f"paths to the pages' old place in docs/ (they are in docs/pages/ now): {stale}"
+
+
+def test_architecture_contact_law_example(monkeypatch):
+    """The one-file contact law of the architecture page runs as written, and a ball thrown
+    back into a riser leaves it as the law says (by hand: vx -> e_wall * 2 m/s, vz -> mu_t
+    vz), where the seed's law would give it e * 2 m/s."""
+    import numpy as np
+
+    monkeypatch.chdir(ROOT)
+    block = fenced_blocks(section((PAGES / "architecture.md").read_text(), "How to add a contact law"),
+                          "python")[0]
+    ns: dict = {}
+    exec("\n".join(block), ns)  # noqa: S102 - the page's own example
+    estim, scene = ns["estim"], ns["scene"]
+    assert ns["traj"].complete
+    for s, e_riser in ((scene, 0.3), (scene.with_law(estim.FactorLaw()), 0.7)):
+        ball = estim.Params.for_ball(s, "golf", e=0.7, mu_t=0.98, velocity=(-2.0, 0.0, 0.0),
+                                     position=(0.9, 0.0, 1.7))
+        ev = estim.simulate(s, ball, 0.4, max_segments=400).events
+        pre, post = np.asarray(ev.velocity_pre[0]), np.asarray(ev.velocity_post[0])
+        assert pre[0] == -2.0  # it meets the riser (normal +x) before any tread
+        np.testing.assert_allclose(post, [e_riser * 2.0, 0.0, 0.98 * pre[2]], rtol=0, atol=1e-12)

@@ -57,7 +57,7 @@ PATHS = ["closed_form", "ode"]
 # atol 1e-9, contact slack 1e-6 m) meets the same tolerances: in a vacuum every flight is
 # a parabola, which a Runge-Kutta step of order >= 2 reproduces to rounding, each contact
 # time is a Newton root of the RK step's guard (to rounding), and bounce series are summed
-# by the same closed forms (estim.forward._train). rtol and the slack bound the error only where
+# by the same closed forms (the contact law's, estim.forward.laws). rtol and the slack bound the error only where
 # the path is not a parabola (air), which no case here has.
 TOL = {"closed_form": 1e-9, "ode": 1e-9}
 DTOL = {"closed_form": 1e-8, "ode": 1e-8}

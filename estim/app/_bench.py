@@ -20,7 +20,7 @@ import numpy as np
 from .. import _config
 from .._json import dump
 from ..fitting._job import fit_csv
-from ..forward import _native
+from ..forward._dispatch import NATIVE, path
 from ..forward._ode import OdeSettings
 from ..forward._simulate import simulate, solve_closed_form, solve_ode
 from ..forward._trajectory import check_keep
@@ -244,9 +244,9 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         "small_loops_as_kernels": bool(_config.SMALL_LOOPS_AS_KERNELS),
         # Whether JAX runs programs on the calling thread (estim._config, DISPATCH).
         "sync_dispatch": bool(_config.dispatch_is_sync()),
-        # Whether the closed-form primal ran on the native kernels (estim.forward._native): built at
-        # install, not switched off with ESTIM_NATIVE=0, and JAX's backend is the CPU.
-        "native": bool(_native.active()),
+        # Whether the closed-form primal ran on the native kernels (estim.forward._dispatch):
+        # built at install, not switched off with ESTIM_NATIVE=0, JAX's backend is the CPU.
+        "native": path(scene) == NATIVE,
     }
     return result
 
@@ -381,7 +381,7 @@ def _programs(scene, params, t_end, ts):
 
     def solve(prm, settings):
         if settings is None:
-            return solve_closed_form(scene, prm, t_end, ts, 48, MAX_EVENTS, False, everything, _native.active())
+            return solve_closed_form(scene, prm, t_end, ts, 48, MAX_EVENTS, False, everything, path(scene) == NATIVE)
         return solve_ode(scene, prm, t_end, ts, settings, MAX_EVENTS, False, everything)
 
     def final_x(theta, settings):

@@ -43,12 +43,13 @@ import numpy as np
 
 from .._config import FIT_COMPILE, jit, require_x64
 from ..forward._balls import check_outside
-from ..forward._native import active_plan
+from ..forward._dispatch import ODE, closed_form_plan, path
 from ..forward._ode import OdeSettings
 from ..forward._ode import finish as ode_finish
 from ..forward._ode import plan as ode_plan
 from ..forward._solver import segments_of
 from ..forward._trajectory import IMPACT, list_events, sample
+from ..forward.laws import law_of
 from ..model._params import Params
 from ..model._scene import Scene
 from ..tracks._csv import check_units
@@ -106,10 +107,10 @@ def _plan_at(scene: Scene, phi, problem: _Problem, max_segments: int):
     """The discrete structure of the model at phi (values only: no derivatives flow through
     a plan), and how many slots it uses."""
     params, _, t_end = _model(scene, phi, problem)
-    if scene.air is not None:
+    if path(scene) == ODE:
         pl = ode_plan(scene, params, t_end, _ode_settings())
         return pl, pl.n_steps
-    pl = active_plan(scene, params, t_end, max_segments)
+    pl = closed_form_plan(scene, params, t_end, max_segments)
     return pl, pl.n_segments
 
 
@@ -118,15 +119,16 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
     values phi and their plan ``pl``: the closed form in a vacuum, the ODE path in a scene
     with air. Derivatives replay the first ``n_used`` slots (the batch's largest count)."""
     params, ts, t_end = _model(scene, phi, problem)
-    if scene.air is not None:
+    if path(scene) == ODE:
         pos, _, events, *_ = ode_finish(scene, params, t_end, ts, _ode_settings(), 64, pl, n_used)
         return pos, events, ts
     segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, n_used)
-    pos, _ = sample(segs, pl.decisions, params.e, params.mu_t, scene.gravity, ts)
+    law = law_of(scene)
+    pos, _ = sample(segs, pl.decisions, law, law.coefficients(params), scene.gravity, ts)
     # The events only count impacts (a report, not differentiated): listed from the plan's
     # values, they stay out of the Jacobian's forward-mode trace.
-    e_, mu_ = jax.lax.stop_gradient((params.e, params.mu_t))
-    return pos, list_events(pl.segments, pl.decisions, e_, mu_, scene.gravity, 64), ts
+    c = jax.lax.stop_gradient(law.coefficients(params))
+    return pos, list_events(pl.segments, pl.decisions, law, c, scene.gravity, 64), ts
 
 
 def _residuals(scene, phi, problem, pl, n_used):

@@ -11,9 +11,11 @@ import numpy as np
 
 from ..model._params import Params
 from ..model._scene import Scene
+from ._constants import INSIDE_DEPTH, TRAIN
 from ._record import layout_of, pack, unpack
-from ._solver import TRAIN, Plan, segments_of
+from ._solver import Plan, segments_of
 from ._trajectory import ClosedFormSolution, State, list_events_used, sample, trajectory_parts
+from .laws import law_of
 
 
 def flat_params(params: Params) -> Params:
@@ -47,29 +49,31 @@ def ball_parts(scene: Scene, prm: Params, t_end, ts, pl: Plan, max_events: int, 
     samples, events, final state and dense solution that ``keep`` keeps. The JAX path runs
     this for its primal; the native path for its tangent (``estim.forward._native``)."""
     g = scene.gravity
+    law = law_of(scene)
+    c = law.coefficients(prm)
     segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
     pos = vel = events = None  # only what keep keeps is computed
     if "samples" in keep:
-        pos, vel = sample(segments, pl.decisions, prm.e, prm.mu_t, g, ts)
+        pos, vel = sample(segments, pl.decisions, law, c, g, ts)
     if "events" in keep:
-        events = list_events_used(segments, pl.decisions, prm.e, prm.mu_t, g, max_events, pl.n_segments)
+        events = list_events_used(segments, pl.decisions, law, c, g, max_events, pl.n_segments)
     last = jnp.maximum(pl.n_segments - 1, 0)
     final = State(t_end, segments.p1[last], segments.v1_post[last])
-    solution = ClosedFormSolution(segments=segments, structure=pl.decisions, e=prm.e, mu_t=prm.mu_t, gravity=g)
+    solution = ClosedFormSolution(segments=segments, structure=pl.decisions, law=law, coefficients=c, gravity=g)
     complete = pl.complete & stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
     return trajectory_parts(pos, vel, events, final, complete, solution, keep)
 
 
 def inside(xp, scene: Scene, p, r):
     """Which solids balls of centres ``p (n, 3)`` and radii ``r (n,)`` start inside (deeper
-    than 1 nm): ``(n, boxes)`` and ``(n, planes)`` booleans. A box's points within r of the
+    than ``INSIDE_DEPTH``, 1 nm): ``(n, boxes)`` and ``(n, planes)`` booleans. A box's points within r of the
     ball's centre: the L1 excess of the centre over the box's half sizes, as in the contact
     table (estim.model._scene, eq. (1))."""
     c, h = xp.asarray(scene.box_centre), xp.asarray(scene.box_half)
     depth = xp.sum(xp.maximum(xp.abs(p[:, None, :] - c[None]) - h[None], 0.0), axis=-1)
     n, s = xp.asarray(scene.plane_normal), xp.asarray(scene.plane_offset)
     height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim.forward._contact.inner)
-    return depth < r[:, None] - 1e-9, height < s[None] + r[:, None] - 1e-9
+    return depth < r[:, None] - INSIDE_DEPTH, height < s[None] + r[:, None] - INSIDE_DEPTH
 
 
 def stays_outside(scene: Scene, radius, decisions, segments, n_segments):

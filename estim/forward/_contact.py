@@ -19,11 +19,9 @@ derivatives are exactly the implicit-function event-time sensitivities,
 ``d tau = -(dG0 + tau dG1 + tau^2/2 dG2) / G'(tau)``, and stay finite while s > 0. A tangent
 touch (s = 0, a grazing contact) is not an event: the ball does not cross the face.
 
-The reset at a contact with normal n keeps the model of the seed: the normal velocity is
-reversed and scaled by the coefficient of restitution e, the tangential velocity is scaled
-by mu_t,
-
-    v+ = mu_t (v - (v . n) n) - e (v . n) n.                                   (3)
+What a contact does to the ball is the contact law's (``estim.forward.laws``); the
+tolerances below are defined in ``estim.forward._constants``, shared with the native
+kernels.
 """
 
 from __future__ import annotations
@@ -38,22 +36,21 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..model._scene import Scene
-
-# Positions are metres of order 1-10, so rounding is ~1e-15 m; a face counts as touched
-# within POSITION_TOL and a normal speed below SPEED_TOL counts as zero.
-POSITION_TOL = 1e-12
-SPEED_TOL = 1e-12
-# Likewise a normal acceleration below ACCEL_TOL (m/s^2) counts as zero. Accelerations are
-# of order g ~ 10, so rounding leaves ~1e-15 in one that is zero exactly: a ball sliding
-# on a bevel along its ridge with a corner face (the slide acceleration lies in both
-# planes) got G2 = -1.2e-15 for the corner face, so it "entered" that face at tau = 0, and
-# from there the bevel, and so on, switching faces forever at one instant.
-ACCEL_TOL = 1e-12
-# A point on a face's plane lies on the face if it is inside the grown box to ON_FACE_TOL.
-ON_FACE_TOL = 1e-9
-# A bounce whose post-impact normal speed is below REST_SPEED ends the bounce series: the
-# remaining flights would last less than 2 REST_SPEED / g ~ 2e-10 s in all.
-REST_SPEED = 1e-9
+from ._constants import (
+    ACCEL_TOL,
+    AXIS_TOL,
+    FACE_CENTRE,
+    FACE_DIRECTION,
+    FACE_HALF,
+    FACE_NORMAL,
+    FACE_OFFSET,
+    FACE_ROW,
+    FACE_SOLID,
+    ON_FACE_TOL,
+    POSITION_TOL,
+    SPEED_TOL,
+    TIE_TIME,
+)
 
 
 class Faces(eqx.Module):
@@ -68,7 +65,7 @@ class Faces(eqx.Module):
     balls of any radius: a batch of balls needs one table, not one each.
     """
 
-    row: Float[Array, "faces 14"]
+    row: Float[Array, "faces 14"]  # FACE_ROW columns
     growth: Float[Array, " faces"]
     rank: Int[Array, " faces"]
     lower: Int[Array, "faces 6"]  # faces of the same box that border this one, of lower rank (-1: none)
@@ -94,7 +91,11 @@ class Faces(eqx.Module):
         return self.row[face, NORMAL], self.row[face, OFFSET] + self.radius * self.growth[face]
 
 
-NORMAL, OFFSET, CENTRE, HALF, DIRECTION, SOLID = slice(0, 3), 3, slice(4, 7), slice(7, 10), slice(10, 13), 13
+# The columns of a row (estim.forward._constants, shared with the native kernels).
+NORMAL, OFFSET = slice(FACE_NORMAL, FACE_NORMAL + 3), FACE_OFFSET
+CENTRE, HALF = slice(FACE_CENTRE, FACE_CENTRE + 3), slice(FACE_HALF, FACE_HALF + 3)
+DIRECTION, SOLID = slice(FACE_DIRECTION, FACE_DIRECTION + 3), FACE_SOLID
+assert FACE_SOLID + 1 == FACE_ROW  # (the row of faces_for below, column by column)
 
 
 def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
@@ -220,7 +221,7 @@ def first_contact(
     """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.
 
     ``exclude`` is a face the ball is sliding on (or -1). Faces reached at the same instant
-    (to 1e-12 s) are resolved in favour of box faces over bevels over corners, so a ball
+    (to ``TIE_TIME``, 1e-12 s) are resolved in favour of box faces over bevels over corners, so a ball
     landing exactly on a tread edge lands on the tread.
 
     At an edge of a solid's contact region (where a face meets a face of lower rank, e.g. a
@@ -251,7 +252,7 @@ def first_contact(
 
     def earliest(tau):
         t_min = jnp.min(tau)
-        near = tau <= t_min + 1e-12
+        near = tau <= t_min + TIE_TIME
         return t_min, (jnp.min(jnp.where(near, order, 4 * n_faces)) % n_faces).astype(jnp.int32)
 
     def blocked(face, t):
@@ -297,12 +298,6 @@ def face_entering_time(faces: Faces, face, p, v, a):
     """``entering_time`` for one face, recomputed from the state (differentiable)."""
     n, h = faces.normal_offset(face)
     return entering_time(inner(n, p) - h, inner(n, v), inner(n, a))
-
-
-def reset(v, n, e, mu_t):
-    """Post-impact velocity, eq. (3)."""
-    vn = inner(v, n)
-    return mu_t * (v - vn * n) - e * vn * n
 
 
 def slide_exit_time(faces: Faces, face, p, v, a):
@@ -351,11 +346,11 @@ def train_reach(faces: Faces, face, p, u, height):
     moving = speed > 0
     d = jnp.where(moving, u[:2] / jnp.where(moving, speed, 1.0), 0.0)
     # 2-D slab test of the ray p + d s, s >= 0, against every rectangle. A component of d
-    # below 1e-12 counts as zero: over the metres a series travels it moves the ball less
-    # than ON_FACE_TOL, and a ball released touching a riser with vx = -5e-189 (found by
-    # tests/test_properties.py) had the riser's box "entered" at s = 0, which cut its
-    # bounce series into 48 single flights.
-    dz = jnp.abs(d) > 1e-12
+    # below AXIS_TOL (1e-12) counts as zero: over the metres a series travels it moves the
+    # ball less than ON_FACE_TOL, and a ball released touching a riser with vx = -5e-189
+    # (found by tests/test_properties.py) had the riser's box "entered" at s = 0, which cut
+    # its bounce series into 48 single flights.
+    dz = jnp.abs(d) > AXIS_TOL
     dd = jnp.where(dz, d, 1.0)
     t1 = (lo[:, :2] - p[:2]) / dd
     t2 = (hi[:, :2] - p[:2]) / dd
@@ -384,58 +379,3 @@ def series_clear(faces: Faces, face, p, v, duration, gravity):
     d = jnp.sqrt(jnp.sum(v * v)) * duration + 0.5 * gravity * duration**2
     meets = jnp.all(p - d < faces.hi, axis=1) & jnp.all(p + d > faces.lo, axis=1)
     return ~jnp.any(meets & (jnp.arange(faces.lo.shape[0]) != faces.row[face, SOLID]))
-
-
-@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
-def geometric_sum(q, n):
-    """``sum_{j<n} q^j = (1 - q^n) / (1 - q)`` for q in [0, 1] and real n >= 0 (n may be
-    inf), accurate and differentiable up to q = 1, where it is n (with the exact first
-    derivative n (n - 1) / 2 there)."""
-    one = q == 1.0
-    zero = q == 0.0
-    lq = jnp.log(jnp.where(one | zero, 0.5, q))
-    n_safe = jnp.where(jnp.isfinite(n), n, 1e300)
-    general = jnp.expm1(jnp.minimum(n_safe * lq, 0.0)) / jnp.expm1(lq)
-    general = jnp.where(jnp.isfinite(n), general, -1.0 / jnp.expm1(lq))
-    # (At q = 1 an infinite n gives inf below; a finite stand-in keeps reverse-mode
-    # cotangents of this unused branch free of inf * 0.)
-    n_one = jnp.where(jnp.isfinite(n), n, 1.0)
-    at_one = n_one + 0.5 * n_one * (n_one - 1.0) * (q - 1.0)
-    at_zero = jnp.where(n >= 1, 1.0 + q * jnp.minimum(n - 1.0, 1.0), 0.0)
-    return jnp.where(one, jnp.where(jnp.isfinite(n), at_one, jnp.inf), jnp.where(zero, at_zero, general))
-
-
-@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
-def geometric_count(q, y):
-    """Largest whole n >= 0 with ``geometric_sum(q, n) <= y`` (inf if every n qualifies).
-
-    Not differentiated: counts are discrete. A correction step makes the result exact with
-    respect to ``geometric_sum`` itself, whatever the rounding of the logarithms.
-    """
-    q = jax.lax.stop_gradient(q)
-    y = jax.lax.stop_gradient(y)
-    lq = jnp.log(jnp.where((q > 0) & (q < 1), q, 0.5))
-    arg = 1.0 - y * (1.0 - q)
-    n_gen = jnp.where(arg > 0, jnp.floor(jnp.log(jnp.where(arg > 0, arg, 1.0)) / lq), jnp.inf)
-    n = jnp.where(q >= 1.0, jnp.floor(y), jnp.where(q <= 0.0, jnp.where(y >= 1, jnp.inf, 0.0), n_gen))
-    n = jnp.where(y < 0, -1.0, n)
-    finite = jnp.isfinite(n) & (n >= 0)
-    nf = jnp.where(finite, n, 0.0)
-    n = jnp.where(finite & (geometric_sum(q, nf + 1) <= y), nf + 1, n)
-    n = jnp.where(finite & (nf > 0) & (geometric_sum(q, nf) > y), nf - 1, n)
-    return jnp.where(y < 0, -1.0, jnp.maximum(n, 0.0))
-
-
-@jax.jit  # traced once per signature, not at each call (estim._config, TRACING)
-def safe_power(x, n):
-    """``x ** n`` for x in [0, 1] and whole n >= 0 (n may be inf), with finite gradients:
-    ``x ** 0 = 1`` and ``x ** inf = 0`` (``1`` when x = 1)."""
-    finite = jnp.isfinite(n)
-    whole = finite & (n >= 1)
-    n_safe = jnp.where(whole, n, 1.0)
-    x_pos = x > 0
-    x_safe = jnp.where(x_pos, x, 1.0)
-    # x^n = x * x^(n-1), so that d/dx at x = 0 is 1 for n = 1 and 0 beyond.
-    rest = jnp.where(x_pos, x_safe ** (n_safe - 1.0), jnp.where(n_safe == 1.0, 1.0, 0.0))
-    at_inf = jnp.where(x == 1.0, 1.0, 0.0)
-    return jnp.where(whole, x * rest, jnp.where(finite, 1.0, at_inf))

@@ -7,7 +7,7 @@
 // the structure this kernel found with the differentiable closed forms of estim.forward._solver
 // (estim.forward._native, the custom_jvp). Every function below is a line-by-line port of the
 // JAX function of the same name, with the same formulas and the same tolerances; the
-// docstrings there carry the maths (estim.forward._contact, estim.forward._train, estim.forward._solver,
+// docstrings there carry the maths (estim.forward._contact, estim.forward.laws, estim.forward._solver,
 // estim.forward._trajectory) and tests/test_native.py checks that both give the same structure
 // and the same numbers, to rounding, ball by ball.
 //
@@ -18,6 +18,14 @@
 // Semantics kept from JAX: jnp.minimum / jnp.maximum / jnp.min propagate NaN (jmin, jmax
 // below), comparisons with NaN are false, and expressions are evaluated in the order the
 // JAX code writes them (XLA does not reassociate floating point).
+//
+// The contact law: the kernels implement the seed's factor law (estim.forward.laws.FactorLaw:
+// reset, settle and its bounce series' closed forms, the section "The factor law" below)
+// and no other; estim.forward._native.supports says so, and every other law runs on the JAX
+// planner. The numbers shared with the JAX solver (tolerances, limits, the numbering of
+// segment kinds, end reasons and event kinds, the face table's columns) are not written
+// here: they come from estim/forward/_constants.py, through the header setup.py generates
+// from it (_constants.h), and the module reports them back (constants()).
 
 #include <Python.h>
 
@@ -33,6 +41,7 @@
 #include <thread>
 #include <vector>
 
+#include "_constants.h"  // generated from estim/forward/_constants.py by setup.py
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -50,29 +59,14 @@ namespace {
 constexpr double kInf = std::numeric_limits<double>::infinity();
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-// estim.forward._contact
-constexpr double POSITION_TOL = 1e-12;
-constexpr double SPEED_TOL = 1e-12;
-constexpr double ACCEL_TOL = 1e-12;
-constexpr double ON_FACE_TOL = 1e-9;
-constexpr double REST_SPEED = 1e-9;
-// estim.forward._train
-constexpr double GAP = 1e-6;
-constexpr double MAX_COUNT = 4503599627370496.0;  // 2^52
-// estim.forward._trajectory
-constexpr double LISTED_FLIGHT = 1e-6;
-// estim.forward._simulate._inside: a ball starts inside a solid deeper than this
-constexpr double INSIDE_TOL = 1e-9;
+// Tolerances, limits, segment kinds (FLIGHT, TRAIN, SLIDE, UNUSED), end reasons (END,
+// CONTACT, EXIT, BOUNCES, SETTLE) and event kinds (IMPACT, REST): _constants.h.
 
-// estim.forward._solver: segment kinds and why a segment ends
-enum Kind : int32_t { FLIGHT = 0, TRAIN = 1, SLIDE = 2, UNUSED = 3 };
-enum Reason : int32_t { END = 0, CONTACT = 1, EXIT = 2, BOUNCES = 3, SETTLE = 4 };
-// estim.forward._trajectory: event kinds
-enum EventKind : int32_t { IMPACT = 0, REST = 1 };
-
-// Columns of a face-table row (estim.forward._contact.Faces.row).
-constexpr int ROW = 14, NORMAL = 0, OFFSET = 3, CENTRE = 4, HALF = 7, DIRECTION = 10, SOLID = 13;
-constexpr int LOWER = 6;  // bordering faces of lower rank per face
+// Columns of a face-table row (estim.forward._contact.Faces.row), and the bordering faces
+// of lower rank kept per face.
+constexpr int ROW = FACE_ROW, NORMAL = FACE_NORMAL, OFFSET = FACE_OFFSET, CENTRE = FACE_CENTRE, HALF = FACE_HALF,
+              DIRECTION = FACE_DIRECTION, SOLID = FACE_SOLID;
+constexpr int LOWER = FACE_LOWER;
 
 inline double jmin(double a, double b) { return (a != a || b != b) ? kNaN : (a < b ? a : b); }
 inline double jmax(double a, double b) { return (a != a || b != b) ? kNaN : (a > b ? a : b); }
@@ -291,7 +285,7 @@ struct Candidate {
 
 // Earliest face the ball enters, and when; (inf, -1) if none (estim.forward._contact.first_contact).
 // The faces of a solid are tested only while the solid's reach bound could still beat the
-// earliest contact found so far (to within the 1e-12 s that ties faces): the result is
+// earliest contact found so far (to within the TIE_TIME that ties faces): the result is
 // that of testing every face, the blocked faces and the ties included.
 struct ContactSearch {
   std::vector<Candidate> found, alive;
@@ -314,7 +308,7 @@ struct ContactSearch {
       int b = 0;
       for (int c = 1; c < groups; ++c) b = bound[c] < bound[b] ? c : b;
       // (A bound is NaN never: NaN positions enter nothing.)
-      if (!(bound[b] < kInf) || bound[b] > best.first + 1e-12) break;  // (and so are the solids after it)
+      if (!(bound[b] < kInf) || bound[b] > best.first + TIE_TIME) break;  // (and so are the solids after it)
       bound[b] = kInf;  // (taken)
       const int lo = broad ? fc.first[b] : 0, hi = broad ? fc.first[b + 1] : F;
       // Every face's entering time first (face_times), then the few faces with a time, on
@@ -346,7 +340,7 @@ struct ContactSearch {
       size_t pick = 0;
       int32_t best = std::numeric_limits<int32_t>::max();
       for (size_t j = 0; j < c.size(); ++j)
-        if (c[j].tau <= t_min + 1e-12 && c[j].order < best) best = c[j].order, pick = j;
+        if (c[j].tau <= t_min + TIE_TIME && c[j].order < best) best = c[j].order, pick = j;
       const int face = c[pick].face;
       if (rounds == 3 || !blocked(fc, p, v, a, face, t_min)) return {t_min, face};
       if (list == &found) alive = found, list = &alive;
@@ -377,12 +371,6 @@ double face_entering_time(const Faces& fc, int face, V3 p, V3 v, V3 a) {
   return entering_time(inner(n, p) - fc.offset[face], inner(n, v), inner(n, a));
 }
 
-// eq. (3) of estim.forward._contact
-V3 reset(V3 v, V3 n, double e, double mu_t) {
-  const double vn = inner(v, n);
-  return mu_t * (v - vn * n) - e * vn * n;
-}
-
 double slide_exit_time(const Faces& fc, int face, V3 p, V3 v, V3 a) {
   const double* r = fc.row(face);
   double out = kInf;
@@ -410,7 +398,7 @@ double train_reach(const Faces& fc, int face, V3 p, V3 u, double height) {
   bool dz[2];
   for (int i = 0; i < 2; ++i) {
     d[i] = moving ? u[i] / (moving ? speed : 1.0) : 0.0;
-    dz[i] = std::fabs(d[i]) > 1e-12;
+    dz[i] = std::fabs(d[i]) > AXIS_TOL;
     dd[i] = dz[i] ? d[i] : 1.0;
   }
   double obstacle = kInf;
@@ -509,8 +497,10 @@ double safe_power(double x, double n) {
 }
 
 // ---------------------------------------------------------------------------------------
-// estim.forward._train
+// The factor law (estim.forward.laws.FactorLaw): its reset, its settle and the closed forms
+// of its bounce series (estim.forward.laws.AbstractSummableLaw: state_at, series_end).
 
+// estim.forward.laws.series
 struct Series {
   V3 normal;
   double a_n;
@@ -525,17 +515,18 @@ Series series(V3 v, V3 normal, V3 a) {
   return Series{normal, a_n, a - a_n * normal, w, v - w * normal, 2.0 * w / -a_n};
 }
 
-// A ball's coefficients e and mu_t with the ratios its bounce series sum: e, e mu_t and
-// e^2, and for the divided differences K and L e2 mu_t and e2^2, e2 being e moved by GAP
-// off mu_t where they nearly agree (estim.forward._train._differences).
+// A ball's coefficients e and mu_t (estim.forward.laws.FactorCoefficients) with the ratios
+// its bounce series sum: e, e mu_t and e^2, and for the divided differences K and L e2 mu_t
+// and e2^2, e2 being e moved by SERIES_GAP off mu_t where they nearly agree
+// (estim.forward.laws._factor._differences).
 struct Rates {
   double e, mu, e2, gap;
   Ratio by_e, by_emu, by_ee, by_e2mu, by_e2e2;
 
   Rates() = default;
   Rates(double e_, double mu_) : e(e_), mu(mu_) {
-    const bool close = std::fabs(mu - e) < GAP;
-    e2 = close ? (e >= GAP ? e - GAP : e + GAP) : e;
+    const bool close = std::fabs(mu - e) < SERIES_GAP;
+    e2 = close ? (e >= SERIES_GAP ? e - SERIES_GAP : e + SERIES_GAP) : e;
     gap = mu - e2;
     by_e = Ratio(e);
     by_emu = Ratio(e * mu);
@@ -591,6 +582,24 @@ Start series_end(const Series& s, double n, const Rates& c) {
   return st;
 }
 
+// FactorLaw.reset: v+ = mu_t (v - (v . n) n) - e (v . n) n
+V3 reset(V3 v, V3 n, const Rates& c) {
+  const double vn = inner(v, n);
+  return c.mu * (v - vn * n) - c.e * vn * n;
+}
+
+// AbstractContactLaw.contact_velocity with FactorLaw.rebound (e (-v . n)) and
+// FactorLaw.settle (the tangential velocity stays only if mu_t = 1).
+V3 contact_velocity(V3 v, V3 n, V3 a, const Rates& c) {
+  const double vn = inner(v, n);
+  const V3 tangential = v - vn * n;
+  const bool impact = -vn > REST_SPEED;
+  const bool settles = (c.e * -vn <= REST_SPEED) && (inner(n, a) < 0);
+  if (!impact) return tangential;
+  if (settles) return tangential * (c.mu == 1.0 ? 1.0 : 0.0);
+  return reset(v, n, c);
+}
+
 // ---------------------------------------------------------------------------------------
 // estim.forward._solver
 
@@ -620,16 +629,6 @@ void write_segment(const Segment& s, double* o) {
     o[20 + i] = s.normal[i];
   }
   o[10] = s.t1;
-}
-
-V3 contact_velocity(V3 v, V3 n, V3 a, double e, double mu_t) {
-  const double vn = inner(v, n);
-  const V3 tangential = v - vn * n;
-  const bool impact = -vn > REST_SPEED;
-  const bool settles = (e * -vn <= REST_SPEED) && (inner(n, a) < 0);
-  if (!impact) return tangential;
-  if (settles) return tangential * (mu_t == 1.0 ? 1.0 : 0.0);
-  return reset(v, n, e, mu_t);
 }
 
 struct Ball {
@@ -676,7 +675,6 @@ void decide_end(const Faces& fc, const Ball& b, const Step& st, double t_end, Co
 
 // Carry the state through one segment with structure d.
 Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& d, double t_end) {
-  const double e = b.e, mu_t = b.mu_t;
   const V3 a = v3(0.0, 0.0, -1.0) * fc.s->gravity;
   Segment seg;
   seg.t0 = st.t;
@@ -720,23 +718,23 @@ Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& 
   if (!std::isfinite(tau_b)) tau_b = 0.0;
   seg.p1 = ballistic_p(st.p, seg.v0, seg.acc, tau_b);
   seg.v1 = ballistic_v(seg.v0, seg.acc, tau_b);
-  seg.v1_post = d.reason == CONTACT ? contact_velocity(seg.v1, fc.normal(face), a, e, mu_t) : seg.v1;
+  seg.v1_post = d.reason == CONTACT ? contact_velocity(seg.v1, fc.normal(face), a, b.rates) : seg.v1;
   seg.t1 = st.t + tau_b;
   return seg;
 }
 
 // Kind, support and bounce count of the segment that follows seg.
 void next_structure(const Faces& fc, const Ball& b, const Segment& seg, const Decision& d, Step* next) {
-  const double e = b.e, mu_t = b.mu_t, g = fc.s->gravity;
+  const double e = b.e, g = fc.s->gravity;
   const V3 a = v3(0.0, 0.0, -1.0) * g;
   const int face = d.face > 0 ? d.face : 0;
   const V3 n_face = fc.normal(face);
   const V3 post = seg.v1_post;
   const bool settled = (std::fabs(inner(post, n_face)) <= REST_SPEED) && (inner(n_face, a) < 0);
-  const bool up = n_face[2] > 1.0 - 1e-12;
-  const bool inclined = (inner(n_face, a) < 0) && !up && (e < 1);
+  const bool up = n_face[2] > 1.0 - AXIS_TOL;
+  const bool inclined = (inner(n_face, a) < 0) && !up && (e < 1);  // FactorLaw.accumulates
   const V3 if_support = fc.normal(support_face(d.support));
-  const bool stays = (d.kind == SLIDE) && (std::fabs(inner(n_face, if_support)) < 1e-12);
+  const bool stays = (d.kind == SLIDE) && (std::fabs(inner(n_face, if_support)) < AXIS_TOL);
   // (Only a contact after which the ball neither stays on its face nor settles can start
   // a train: only then is its bounce count needed.)
   const bool may_train = d.reason == CONTACT && !stays && !settled;
@@ -744,12 +742,12 @@ void next_structure(const Faces& fc, const Ball& b, const Segment& seg, const De
   if (may_train && inclined) {
     // on_bevel: a whole Zeno series, if it lands on the face and meets nothing else
     const Series s = series(post, n_face, a);
-    const V3 x_inf = series_end(s, kInf, b.rates).x, x_one = series_end(s, 1.0, b.rates).x;
+    const Start whole = series_end(s, kInf, b.rates);
+    const V3 x_inf = whole.x, x_one = series_end(s, 1.0, b.rates).x;
     const double* row = fc.row(face);
     const bool lands = on_face(seg.p1 + x_inf, row + CENTRE, row + HALF, fc.radius) &&
                        on_face(seg.p1 + x_one, row + CENTRE, row + HALF, fc.radius);
-    const double t_total = s.period / (1.0 - e);
-    const bool clear = series_clear(fc, face, seg.p1, post, t_total, g);
+    const bool clear = series_clear(fc, face, seg.p1, post, whole.t, g);
     n_train = (lands && clear) ? kInf : 0.0;
   } else if (may_train && up) {
     // on_upward: how many bounces provably land on the face
@@ -759,7 +757,7 @@ void next_structure(const Faces& fc, const Ball& b, const Segment& seg, const De
     const double reach = train_reach(fc, face, seg.p1, u, w * w / (2.0 * g));
     const double speed = std::sqrt(u[0] * u[0] + u[1] * u[1]);
     const double y = speed > 0 ? reach / (speed > 0 ? speed * t_flight : 1.0) : kInf;
-    n_train = reach < 0 ? 0.0 : geometric_count(b.rates.by_emu, y);
+    n_train = reach < 0 ? 0.0 : geometric_count(b.rates.by_emu, y);  // FactorLaw.landings_within
   }
   const int32_t after_kind = (stays || settled) ? SLIDE : (((up || inclined) && n_train >= 1) ? TRAIN : FLIGHT);
   const int32_t after_support = stays ? d.support : face;
@@ -825,11 +823,11 @@ void pad(Plan* pl) {
 }
 
 // ---------------------------------------------------------------------------------------
-// estim.forward._simulate: a ball inside a solid (deeper than 1 nm), and the planned path's check
+// estim.forward._balls: a ball inside a solid (deeper than INSIDE_DEPTH), and the planned path's check
 
 bool inside_solid(const Faces& fc, V3 p, double r) {
   const Scene& sc = *fc.s;
-  const double limit = r - INSIDE_TOL;
+  const double limit = r - INSIDE_DEPTH;
   for (int b = 0; b < sc.n_boxes; ++b) {
     // (The depth is a sum of terms >= 0, or NaN: once a partial sum is not below the
     // limit, neither is the depth, and the box is left.)
@@ -840,7 +838,7 @@ bool inside_solid(const Faces& fc, V3 p, double r) {
   }
   for (int k = 0; k < sc.n_planes; ++k) {
     const double height = p[0] * sc.p_normal[k * 3] + p[1] * sc.p_normal[k * 3 + 1] + p[2] * sc.p_normal[k * 3 + 2];
-    if (height < sc.p_offset[k] + r - INSIDE_TOL) return true;
+    if (height < sc.p_offset[k] + r - INSIDE_DEPTH) return true;
   }
   return false;
 }
@@ -926,7 +924,7 @@ struct LastBounce {
 };
 
 // Bounce j (from 1) of the train segment k, s (estim.forward._trajectory._bounce /
-// estim.forward._train.bounce).
+// estim.forward.laws.AbstractSummableLaw.bounce).
 void train_bounce(const Segment& s, int k, double j, const Rates& c, double g, Event* ev, LastBounce* last) {
   const bool is_train = inner(s.v0, s.normal) > 0;
   const V3 normal = is_train ? s.normal : kUp;
@@ -1474,8 +1472,26 @@ static PyObject* handlers(PyObject*, PyObject*) {
                        PyCapsule_New(reinterpret_cast<void*>(EstimTrajectory), nullptr, nullptr));
 }
 
+// `constants()`: the numbers this module was compiled with (_constants.h), name -> value,
+// for estim.forward._native to check against estim/forward/_constants.py.
+static PyObject* constants(PyObject*, PyObject*) {
+  PyObject* out = PyDict_New();
+  if (out == nullptr) return nullptr;
+  for (const EstimConstant& c : kConstants) {
+    PyObject* value = PyFloat_FromDouble(c.value);
+    if (value == nullptr || PyDict_SetItemString(out, c.name, value) < 0) {
+      Py_XDECREF(value);
+      Py_DECREF(out);
+      return nullptr;
+    }
+    Py_DECREF(value);
+  }
+  return out;
+}
+
 static PyMethodDef kMethods[] = {
     {"handlers", handlers, METH_NOARGS, "The XLA FFI handlers of estim's closed-form solver, as capsules."},
+    {"constants", constants, METH_NOARGS, "The shared constants the kernels were compiled with (name -> value)."},
     {nullptr, nullptr, 0, nullptr}};
 
 static PyModuleDef kModule = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -1,8 +1,9 @@
 """The closed-form solver's primal on native CPU kernels, its derivatives in JAX.
 
 ``estim/forward/_kernels.cc`` ports the gravity-only solver of ``estim.forward._solver``,
-``estim.forward._contact``, ``estim.forward._train`` and ``estim.forward._trajectory`` line by line to C++, and
-JAX calls it through its foreign function interface (``jax.ffi``). What the kernels
+``estim.forward._contact`` and ``estim.forward._trajectory``, with the seed's contact law
+(``estim.forward.laws.FactorLaw``), line by line to C++, and JAX calls it through its
+foreign function interface (``jax.ffi``). What the kernels
 compute is the *primal*: each ball's plan (the discrete structure of its solution and its
 segments) and its packed :class:`estim.Trajectory` rows. Derivatives never enter them:
 
@@ -18,10 +19,15 @@ Why: the JAX program of the event loop is one XLA kernel of some 26,000 HLO line
 XLA:CPU takes 2.5 s to compile at every new process and whose buffers cost a call some
 tens of microseconds; the kernels are compiled once, at install (docs/pages/speed.md).
 
-The kernels run on the CPU backend only. Where they are not built (no C++ compiler at
-install), where JAX's default backend is not the CPU, or with ``ESTIM_NATIVE=0`` in the
-environment, estim runs the JAX planner instead: the same results, to rounding
-(``tests/test_native.py`` checks them ball by ball). :func:`active` says which.
+The kernels accelerate what they support and say so: :func:`supports` is true for the
+factor law in a scene without air, and :func:`runs` is the one dispatch of the closed-form
+path (``estim.simulate``, the fit, the sensitivities): the kernels where they are
+:func:`active` and support the scene's law, the JAX planner otherwise, with the same
+results to rounding (``tests/test_native.py`` checks them ball by ball; a scene with air
+goes to the ODE path, ``estim.forward._ode``). The kernels run on the CPU backend only:
+where they are not built (no C++ compiler at install), were built with other shared
+constants than ``estim.forward._constants`` (a stale build), where JAX's default backend
+is not the CPU, or with ``ESTIM_NATIVE=0`` in the environment, estim runs the JAX planner.
 """
 
 from __future__ import annotations
@@ -36,19 +42,21 @@ import numpy as np
 
 from .._config import keep_loop
 from ..model._scene import Scene
+from . import _constants
 from ._balls import ball_parts, flat_params, map_balls
 from ._contact import faces_for
 from ._record import Layout, layout_of, pack
 from ._solver import Decision, Plan, Segment
-from ._solver import plan as jax_plan
 from ._trajectory import KEEP, ClosedFormSolution, Events, State, trajectory_parts
+from .laws import AbstractContactLaw, FactorCoefficients, FactorLaw, law_of
 
 try:  # the extension built from estim/forward/_kernels.cc (setup.py)
     from . import _kernels
 except ImportError:  # pragma: no cover - an install without a C++ compiler
     _kernels = None
 
-__all__ = ["available", "active", "plan", "active_plan", "trajectory_rows", "trajectory_layout", "FIELDS"]
+__all__ = ["available", "active", "supports", "runs", "stale_constants", "plan", "trajectory_rows",
+           "trajectory_layout", "FIELDS"]
 
 # The fields of a Trajectory's rows the kernel writes, in the order of its `Field` enum.
 FIELDS = (
@@ -61,7 +69,7 @@ FIELDS = (
     "solution.segments.normal",
     "solution.structure.kind", "solution.structure.support", "solution.structure.n",
     "solution.structure.reason", "solution.structure.face",
-    "solution.e", "solution.mu_t",
+    "solution.coefficients.e", "solution.coefficients.mu_t",
 )
 # Numbers per segment in the plan kernel's output: t0, p0, v0, acc, t1, p1, v1, v1_post, normal.
 _SEGMENT = (("t0", 1), ("p0", 3), ("v0", 3), ("acc", 3), ("t1", 1), ("p1", 3), ("v1", 3), ("v1_post", 3),
@@ -71,15 +79,54 @@ _SEGMENT = (("t0", 1), ("p0", 3), ("v0", 3), ("acc", 3), ("t1", 1), ("p1", 3), (
 ENABLED = os.environ.get("ESTIM_NATIVE", "1") != "0"
 
 
+@functools.cache
+def stale_constants() -> dict[str, tuple[float, float]]:
+    """The shared constants the kernels were built with that differ from
+    ``estim.forward._constants`` (name -> (kernels, Python)), a name missing on either side
+    as NaN; empty for a current build (or none)."""
+    if _kernels is None:
+        return {}
+    built = _kernels.constants()
+    ours = {name: float(value) for name, value in _constants.exported().items()}
+    return {name: (built.get(name, math.nan), ours.get(name, math.nan))
+            for name in sorted(set(built) | set(ours)) if built.get(name) != ours.get(name)}
+
+
 def available() -> bool:
-    """Whether the native kernels were built (at install)."""
-    return _kernels is not None
+    """Whether the native kernels were built (at install), with the shared constants of this
+    estim (``estim.forward._constants``; a stale build is not used: rebuild with
+    ``pip install -e .``)."""
+    return _kernels is not None and not stale_constants()
 
 
 def active() -> bool:
-    """Whether the closed-form path runs on the native kernels now: built, not switched
-    off (``ESTIM_NATIVE=0``), and JAX's default backend is the CPU."""
-    return ENABLED and _kernels is not None and jax.default_backend() == "cpu"
+    """Whether the native kernels run now where they support the scene: built (and
+    current), not switched off (``ESTIM_NATIVE=0``), and JAX's default backend is the CPU."""
+    return ENABLED and available() and jax.default_backend() == "cpu"
+
+
+def supports(law: AbstractContactLaw, scene: Scene) -> bool:
+    """Whether the kernels compute the closed-form path of ``scene`` under ``law``: the
+    seed's factor law (``estim.forward.laws.FactorLaw``, the only law they implement) in a
+    scene without air (a scene with air takes the ODE path). Anything else runs on the
+    JAX planner, with the same results."""
+    return isinstance(law, FactorLaw) and scene.air is None
+
+
+def runs(scene: Scene) -> bool:
+    """The dispatch of the closed-form path: whether the kernels run ``scene`` now
+    (:func:`active` and :func:`supports` its contact law), else the JAX planner does."""
+    return active() and supports(law_of(scene), scene)
+
+
+def _check_supported(scene: Scene) -> None:
+    law = law_of(scene)
+    if not supports(law, scene):
+        raise ValueError(
+            f"the native kernels do not support the contact law {type(law).__name__} in this scene "
+            "(estim.forward._native.supports: the factor law without air); use the JAX planner "
+            "(estim.forward._solver.plan), which estim.forward._native.runs(scene) chooses"
+        )
 
 
 @functools.cache
@@ -107,8 +154,10 @@ def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """``estim.forward._solver.plan`` on the native kernel, for balls of any batch shape: the
     discrete structure of each ball's solution and its segments, as values (no
-    derivatives flow through a plan)."""
+    derivatives flow through a plan). ``ValueError`` where the kernels do not
+    :func:`supports` the scene's contact law."""
 
+    _check_supported(scene)
     _register()
     scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
     batch = params.batch_shape
@@ -143,15 +192,6 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
                 n_segments=unflat(n_segments), complete=unflat(complete))
 
 
-def active_plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
-    """The plan of one ball (or a batch) by the planner in use: :func:`plan` where the
-    kernels are :func:`active`, else the JAX planner ``estim.forward._solver.plan`` (one ball)."""
-    if active():
-        return plan(scene, params, t_end, max_segments)
-
-    return jax_plan(scene, params, t_end, max_segments)
-
-
 @functools.lru_cache(maxsize=64)
 def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: frozenset[str]) -> Layout:
     """The layout of one ball's Trajectory rows (``estim.forward._record``), as the JAX path packs
@@ -169,7 +209,9 @@ def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: fr
     final = State(f64(), f64(3), f64(3))
     segments = Segment(f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S, 3))
     structure = Decision(i32(S), i32(S), f64(S), i32(S), i32(S))
-    solution = ClosedFormSolution(segments=segments, structure=structure, e=f64(), mu_t=f64(), gravity=f64())
+    # (The kernels' law: the JAX path's layout for a scene they support.)
+    solution = ClosedFormSolution(segments=segments, structure=structure, law=FactorLaw(),
+                                  coefficients=FactorCoefficients(f64(), f64()), gravity=f64())
     parts = trajectory_parts(f64(n_times, 3), f64(n_times, 3), events, final, flag, solution, keep)
     return layout_of(parts, 0)
 
@@ -195,8 +237,10 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
     in the order of ``params.batch_shape``), laid out by ``trajectory_layout``. With
     ``checks`` the kernel also checks the inputs and the completion of every ball, and
     fails with the first message of ``messages`` that applies (in the order of
-    ``estim.forward._simulate``)."""
+    ``estim.forward._simulate``). ``ValueError`` where the kernels do not :func:`supports`
+    the scene's contact law."""
 
+    _check_supported(scene)
     _register()
     batch = params.batch_shape
     n = math.prod(batch)

@@ -17,14 +17,16 @@ found without ever stepping over one:
 3. *Root finding.* When a contact (or a slide's exit over an edge) is predicted within the
    step, the step is shortened to the event: a Newton iteration solves
    ``G(tau) = n . q_RK(tau) - H = 0`` where ``q_RK(tau)`` is the solver's own step of length
-   tau from the step start and (n, H) the face plane (or the edge bound). The reset of
-   ``estim.forward._contact`` then applies.
+   tau from the step start and (n, H) the face plane (or the edge bound). The scene's
+   contact law (``estim.forward.laws``) then gives the velocity after the contact.
 
-Zeno series carry over: after a bounce on a face that supports the ball, if the rest of the
-bounce series (gravity only) lasts less than ``sqrt(2 SLACK / |a_air|)`` (so neglecting the
+Zeno series carry over (for a contact law whose series sum in closed form,
+``estim.forward.laws.AbstractSummableLaw``; any other law goes bounce by bounce): after a
+bounce on a face that supports the ball, if the rest of the bounce series (gravity only)
+lasts less than ``sqrt(2 SLACK / |a_air|)`` (so neglecting the
 air over it moves the ball by less than ``SLACK``), lands on the same face and meets no
 other solid (the slab test ``train_reach`` on an upward face, the box test
-``series_clear`` on an inclined one), it is summed in closed form (``estim.forward._train``) and
+``series_clear`` on an inclined one), it is summed in closed form (the law's) and
 the ball rests or slides on the face (with the air acting along it); it flies again when
 it slides off an edge. A series still bouncing at ``t_end`` (always so for e = 1) is summed
 up to ``t_end`` under the same conditions. In a vacuum (the ODE path forced on a
@@ -46,35 +48,48 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ..model._air import acceleration
+from ._constants import (
+    AXIS_TOL,
+    FLIGHT,
+    IMPACT,
+    LISTED_FLIGHT,
+    MAX_COUNT,
+    REST,
+    REST_SPEED,
+    SLIDE,
+    SPEED_TOL,
+    STEP_CONTACT,
+    STEP_EXIT,
+    STEP_LAST,
+    STEP_PLAIN,
+    STEP_UNUSED,
+    STEP_ZENO,
+)
 from ._contact import (
     CENTRE,
     DIRECTION,
     HALF,
     NORMAL,
-    REST_SPEED,
-    SPEED_TOL,
     Faces,
     face_normal,
     faces_for,
     first_contact,
-    geometric_count,
     on_face,
     series_clear,
     slide_exit_time,
     train_reach,
 )
 from ._scan import scan_used
-from ._solver import contact_velocity
-from ._train import bounce, series, series_end, state_at
-from ._trajectory import IMPACT, LISTED_FLIGHT, REST, AbstractSolution, Events, State
+from ._trajectory import AbstractSolution, Events, State
+from .laws import AbstractContactLaw, law_of, series
 
-# Step kinds.
-PLAIN, LAST, CONTACT, EXIT, ZENO, UNUSED = 0, 1, 2, 3, 4, 5
-# Motion modes.
-FLY, SLIDE = 0, 1
+# What a step is (Step.kind: STEP_PLAIN, STEP_LAST, STEP_CONTACT, STEP_EXIT, STEP_ZENO,
+# STEP_UNUSED) and how the ball moves in it (Step.mode: FLIGHT or SLIDE, the closed-form
+# planner's segment kinds) are numbered in estim.forward._constants, which says why a step's
+# kind is not a segment's.
 # The default largest distance (m) the integrated path may stray from a step's contact
 # parabola (``simulate(..., contact_slack=...)``).
 SLACK = 1e-6
@@ -90,10 +105,10 @@ class Step(eqx.Module):
 
     kind: Int[Array, ""]
     mode: Int[Array, ""]
-    support: Int[Array, ""]  # face slid on (SLIDE) or just slid off (FLY), else -1
-    face: Int[Array, ""]  # face hit (CONTACT), left (EXIT) or bounced on (ZENO), else -1
-    bound: Int[Array, ""]  # EXIT: which edge bound, 2 * axis + (0 low, 1 high)
-    h: Float[Array, ""]  # step length (a Newton start for CONTACT and EXIT)
+    support: Int[Array, ""]  # face slid on (SLIDE) or just slid off (FLIGHT), else -1
+    face: Int[Array, ""]  # face hit (STEP_CONTACT), left (STEP_EXIT) or bounced on (STEP_ZENO), else -1
+    bound: Int[Array, ""]  # STEP_EXIT: which edge bound, 2 * axis + (0 low, 1 high)
+    h: Float[Array, ""]  # step length (a Newton start for STEP_CONTACT and STEP_EXIT)
 
 
 class Node(eqx.Module):
@@ -166,7 +181,7 @@ def _edge_bounds(row):
 
 def _guard(faces: Faces, kind, face, bound):
     """Plane (n, H) of an event guard ``n . q - H``, which decreases through 0 at the event:
-    the face plane for a CONTACT, edge bound ``bound`` of the face for an EXIT."""
+    the face plane for a STEP_CONTACT, edge bound ``bound`` of the face for a STEP_EXIT."""
     row = faces.row[jnp.maximum(face, 0)]
     sigma, beta = _edge_bounds(row)
     axis = bound // 2
@@ -174,7 +189,7 @@ def _guard(faces: Faces, kind, face, bound):
     sg, bt = sigma[bound], beta[bound]
     n_exit = sg * e_i
     h_exit = sg * row[CENTRE][axis] - jnp.where(jnp.isfinite(bt), bt, 0.0)
-    is_exit = kind == EXIT
+    is_exit = kind == STEP_EXIT
     n_face, h_face = faces.normal_offset(jnp.maximum(face, 0))
     return jnp.where(is_exit, n_exit, n_face), jnp.where(is_exit, h_exit, h_face)
 
@@ -203,18 +218,22 @@ def _event_time(settings, f, t, y, args, n, big_h, tau0):
     return tau, jnp.abs(g(tau)[0])
 
 
-def _zeno(faces: Faces, gravity, air, params, face, p, v, slack, t_left, cut=None):
+def _zeno(faces: Faces, gravity, air, law: AbstractContactLaw, params, face, p, v, slack, t_left, cut=None):
     """Whether the bounce series that starts at (p, v) on ``face`` is summed in closed form
     (see the module docstring), whether it is cut at ``t_end`` (``t_left`` after p), and
     its duration, displacement and final velocity. ``cut`` given (replay): as plan decided.
 
     A series that does not accumulate before ``t_end`` (e = 1 never does) is summed up to
-    ``t_end``: bounce j starts at ``T0 (1 - e^j) / (1 - e)`` (``estim.forward._train``), so the
-    state at ``t_left`` is that of the flight in progress then, in closed form, as on the
-    closed-form path. Stepping it bounce by bounce instead costs a step per bounce (an
+    ``t_end``: bounce j starts at ``T0 (1 - e^j) / (1 - e)`` (``estim.forward.laws.FactorLaw``),
+    so the state at ``t_left`` is that of the flight in progress then, in closed form, as on
+    the closed-form path. Stepping it bounce by bounce instead costs a step per bounce (an
     e = 1 ball with a 0.2 us period would need 10^7) and lets rounding accumulate in the
-    bounce points (1.8e-12 m after 1,000 bounces of an e = 1 ball)."""
-    e, mu_t = params.e, params.mu_t
+    bounce points (1.8e-12 m after 1,000 bounces of an e = 1 ball). A law that is not
+    summable never sums a series."""
+    if not law.summable:
+        no = jnp.bool_(False)
+        return no, no if cut is None else cut, jnp.float64(0.0), jnp.zeros(3), v
+    c = law.coefficients(params)
     g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
     f = jnp.maximum(face, 0)
     n = face_normal(faces, f)
@@ -223,36 +242,35 @@ def _zeno(faces: Faces, gravity, air, params, face, p, v, slack, t_left, cut=Non
     n_s = jnp.where(supports, n, jnp.array([0.0, 0.0, 1.0]))
     s = series(jnp.where(supports, v, n_s), n_s, g_vec)
     if cut is None:  # e = 1: duration inf, always cut
-        full = jax.lax.stop_gradient(series_end(s, jnp.inf, e, mu_t)[0])
+        full = jax.lax.stop_gradient(law.series_end(s, jnp.inf, c)[0])
         cut = ~(full < jax.lax.stop_gradient(t_left))
     # The whole series only where it is not cut: at e = 1 its duration is T0 * inf, whose
     # derivative (inf) turns the zero cotangent of a discarded branch into NaN in reverse
     # mode; n = 1 is harmless there.
-    duration, travel, v_full = series_end(s, jnp.where(cut, 1.0, jnp.inf), e, mu_t)
+    duration, travel, v_full = law.series_end(s, jnp.where(cut, 1.0, jnp.inf), c)
     t_safe = jnp.where(cut, t_left, 0.0)
-    x_cut, v_cut = state_at(s, t_safe, e, mu_t, jnp.inf)
+    x_cut, v_cut = law.state_at(s, t_safe, c, jnp.inf)
     duration = jnp.where(cut, t_left, jnp.where(jnp.isfinite(duration), duration, 0.0))
     travel = jnp.where(cut, x_cut, travel)
     v_end = jnp.where(cut, v_cut, v_full)
     ok = supports & _zeno_allowed(
-        *jax.lax.stop_gradient((faces, gravity, air, params, f, n, p, v, w, s, duration, travel, slack))
+        law, *jax.lax.stop_gradient((faces, gravity, air, params, c, f, n, p, v, w, s, duration, travel, slack))
     )
     return (ok, cut, jnp.where(ok, duration, 0.0), jnp.where(ok, travel, 0.0),
             jnp.where(ok, v_end, v))
 
 
-def _zeno_allowed(faces, gravity, air, params, f, n, p, v, w, s, duration, travel, slack):
+def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duration, travel, slack):
     """The decision of ``_zeno`` (no gradients): the series lands on its face, meets no
     other solid, and is short enough to neglect the air over it."""
-    e, mu_t = params.e, params.mu_t
-    _, x_one, _ = series_end(s, 1.0, e, mu_t)
+    _, x_one, _ = law.series_end(s, 1.0, c)
     # Where the series lands: its first bounce, its last (before t_end, or the accumulation
     # point), and the ball's place over the face at the end (a cut series ends in flight:
     # its tangential displacement). On an upward face the landing points move monotonically
     # along u, so these bound them all; on an inclined face this is the closed form's check
     # too (``estim.forward._solver``).
-    j_last = jnp.minimum(geometric_count(e, duration / s.period), 2.0**52)
-    _, x_last, _ = series_end(s, j_last, e, mu_t)
+    j_last = jnp.minimum(law.bounces_within(duration / s.period, c), MAX_COUNT)
+    _, x_last, _ = law.series_end(s, j_last, c)
     along = travel - jnp.dot(travel, s.normal) * s.normal
     row = faces.row[f]
     lands = (on_face(p + along, row[CENTRE], row[HALF], faces.radius)
@@ -262,7 +280,7 @@ def _zeno_allowed(faces, gravity, air, params, f, n, p, v, w, s, duration, trave
     # inclined face (an edge bevel, which may face a riser across a gap) the box test of
     # the closed form (``series_clear``): without it a series on a bevel was summed
     # straight into the riser beside it (the wedged ball of tests/test_hard_cases.py).
-    up = n[2] > 1.0 - 1e-12
+    up = n[2] > 1.0 - AXIS_TOL
     u = v.at[2].set(0.0)
     reach = train_reach(faces, f, p, u, w * w / (2.0 * gravity))
     clear = jnp.where(up, jnp.linalg.norm(along[:2]) <= reach,
@@ -284,17 +302,19 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
     """Find the accepted steps and the events (values only)."""
     scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
     faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
+    law = law_of(scene)
+    coef = law.coefficients(params)  # (the loop's carry is c)
     f = _vector_field(air, g, params)
     order = settings.solver.order(None)
     g_vec = jnp.array([0.0, 0.0, -1.0]) * g
     S = settings.max_steps
     none = jnp.int32(-1)
-    empty = Step(jnp.int32(UNUSED), jnp.int32(FLY), none, none, jnp.int32(0), jnp.asarray(0.0))
+    empty = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, jnp.int32(0), jnp.asarray(0.0))
     steps = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), empty)
     y0 = jnp.concatenate([params.position, params.velocity])
     h0 = jnp.minimum(t_end, 1e-3)
     # carry: iteration, records, t, y, mode, support, pending Zeno face, h, done, steps
-    init = (jnp.int32(0), jnp.int32(0), jnp.asarray(0.0), y0, jnp.int32(FLY), none, none, h0,
+    init = (jnp.int32(0), jnp.int32(0), jnp.asarray(0.0), y0, jnp.int32(FLIGHT), none, none, h0,
             jnp.bool_(False), steps)
 
     def cond(c):
@@ -310,7 +330,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         a0 = f(y, args)[3:]
 
         # A Zeno series closed in one piece.
-        zeno_ok, z_cut, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, pending, p, v,
+        zeno_ok, z_cut, z_dur, z_travel, z_vel = _zeno(faces, g, air, law, params, pending, p, v,
                                                        settings.slack, t_end - t)
 
         # The next event on the step's parabola.
@@ -322,7 +342,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         tau_e = jnp.where(contact, tau_c, tau_x)
         q_e = p + v * jnp.where(leaves, tau_x, 0.0) + 0.5 * a0 * jnp.where(leaves, tau_x, 0.0) ** 2
         bound = _exit_bound(faces, support, q_e)
-        ev_kind = jnp.where(contact, CONTACT, EXIT)
+        ev_kind = jnp.where(contact, STEP_CONTACT, STEP_EXIT)
         ev_face = jnp.where(contact, face_c, support)
         n_g, h_g = _guard(faces, ev_kind, ev_face, bound)
         event = contact | leaves
@@ -344,11 +364,11 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         factor = jnp.clip(shrink, 0.2, 5.0)
 
         last = ~event & (h_step >= t_end - t)
-        kind = jnp.where(zeno_ok, ZENO, jnp.where(event, ev_kind, jnp.where(last, LAST, PLAIN)))
+        kind = jnp.where(zeno_ok, STEP_ZENO, jnp.where(event, ev_kind, jnp.where(last, STEP_LAST, STEP_PLAIN)))
         rec = Step(
             kind.astype(jnp.int32), mode, support,
             jnp.where(zeno_ok, pending, jnp.where(event, ev_face, -1)).astype(jnp.int32),
-            # A ZENO step records in ``bound`` whether the series was cut at t_end (1).
+            # A STEP_ZENO step records in ``bound`` whether the series was cut at t_end (1).
             jnp.where(zeno_ok, z_cut.astype(jnp.int32), bound), jnp.where(zeno_ok, 0.0, h_step),
         )
         steps = jax.tree.map(lambda b, x: jnp.where(keep, b.at[k].set(x), b), steps, rec)
@@ -356,14 +376,14 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         # The state after an accepted step.
         p1, v1 = y1[:3], y1[3:]
         n_face = face_normal(faces, jnp.maximum(ev_face, 0))
-        v_post = jnp.where(kind == CONTACT, contact_velocity(v1, n_face, g_vec, params.e, params.mu_t), v1)
+        v_post = jnp.where(kind == STEP_CONTACT, law.contact_velocity(v1, n_face, g_vec, coef), v1)
         settled = (jnp.abs(jnp.dot(v_post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, g_vec) < 0)
-        wall = sliding & (jnp.abs(jnp.dot(n_face, n_sup)) < 1e-12)
-        mode_c = jnp.where(wall | settled, SLIDE, FLY)
+        wall = sliding & (jnp.abs(jnp.dot(n_face, n_sup)) < AXIS_TOL)
+        mode_c = jnp.where(wall | settled, SLIDE, FLIGHT)
         support_c = jnp.where(wall, support, jnp.where(settled, ev_face, -1))
-        new_mode = jnp.select([zeno_ok, kind == CONTACT, kind == EXIT], [SLIDE, mode_c, FLY], mode)
-        new_support = jnp.select([zeno_ok, kind == CONTACT, kind == EXIT], [pending, support_c, support], support)
-        new_pending = jnp.where((kind == CONTACT) & (mode_c == FLY), ev_face, -1)
+        new_mode = jnp.select([zeno_ok, kind == STEP_CONTACT, kind == STEP_EXIT], [SLIDE, mode_c, FLIGHT], mode)
+        new_support = jnp.select([zeno_ok, kind == STEP_CONTACT, kind == STEP_EXIT], [pending, support_c, support], support)
+        new_pending = jnp.where((kind == STEP_CONTACT) & (mode_c == FLIGHT), ev_face, -1)
         t_new = jnp.where(zeno_ok, t + z_dur, t + h_step)
         y_new = jnp.where(zeno_ok, jnp.concatenate([p + z_travel, z_vel]), jnp.concatenate([p1, v_post]))
         # After an event step the proposal stands (the event cut the step short).
@@ -379,7 +399,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
             jnp.where(keep, new_support, support).astype(jnp.int32),
             jnp.where(keep, new_pending, pending).astype(jnp.int32),
             jnp.where(keep, h_new, h_rej),
-            keep & ((kind == LAST) | (zeno_ok & z_cut)),
+            keep & ((kind == STEP_LAST) | (zeno_ok & z_cut)),
             steps,
         )
 
@@ -391,6 +411,8 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
     """Recompute every accepted step differentiably (a ``lax.scan`` that runs only the
     first ``n_used`` steps, default all: ``estim.forward._scan``)."""
     faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
+    law = law_of(scene)
+    c = law.coefficients(params)
     f = _vector_field(air, g, params)
     g_vec = jnp.array([0.0, 0.0, -1.0]) * g
 
@@ -400,7 +422,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         sliding = st.mode == SLIDE
         n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(st.support, 0)), 0.0)
         args = (n_sup, sliding)
-        is_event = (st.kind == CONTACT) | (st.kind == EXIT)
+        is_event = (st.kind == STEP_CONTACT) | (st.kind == STEP_EXIT)
         n_g, h_g = _guard(faces, st.kind, st.face, st.bound)
         # One Newton step at the root found by plan: its value is the root, its derivative
         # the implicit-function event-time sensitivity.
@@ -418,16 +440,16 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         newton = is_event & (jnp.abs(gslope) > SPEED_TOL)
         gslope = jnp.where(newton, gslope, 1.0)
         tau_event = tau_star - jnp.where(newton, gval / gslope, 0.0)
-        h = jnp.select([st.kind == PLAIN, st.kind == LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
+        h = jnp.select([st.kind == STEP_PLAIN, st.kind == STEP_LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
         y1, _ = _rk_step(settings, f, t, h, y, args)
         p1, v1 = y1[:3], y1[3:]
         n_face = face_normal(faces, jnp.maximum(st.face, 0))
-        v_post = jnp.where(st.kind == CONTACT, contact_velocity(v1, n_face, g_vec, params.e, params.mu_t), v1)
+        v_post = jnp.where(st.kind == STEP_CONTACT, law.contact_velocity(v1, n_face, g_vec, c), v1)
         a0 = f(y, args)[3:]
         a1 = f(y1, args)[3:]
         # A Zeno series summed in closed form.
-        zeno = st.kind == ZENO
-        _, _, z_dur, z_travel, z_vel = _zeno(faces, g, air, params, jnp.where(zeno, st.face, -1), p, v,
+        zeno = st.kind == STEP_ZENO
+        _, _, z_dur, z_travel, z_vel = _zeno(faces, g, air, law, params, jnp.where(zeno, st.face, -1), p, v,
                                              settings.slack, t_end - t, cut=zeno & (st.bound == 1))
         t1 = jnp.where(zeno, t + z_dur, t + h)
         p1 = jnp.where(zeno, p + z_travel, p1)
@@ -437,7 +459,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         return (t1, jnp.concatenate([p1, v_post])), node
 
     def idle(carry):
-        """What ``apply`` gives for an UNUSED slot: a step of length 0."""
+        """What ``apply`` gives for a STEP_UNUSED slot: a step of length 0."""
         t, y = carry
         a = f(y, (jnp.zeros(3), jnp.bool_(False)))[3:]
         return Node(t, y[:3], y[3:], a, t, y[:3], y[3:], a, y[3:])
@@ -445,19 +467,19 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
     # 0 * e, not a constant, for a single trace of the body (see estim.forward._solver.replay).
     init = (0.0 * params.e, jnp.concatenate([params.position, params.velocity]))
     none = jnp.int32(-1)
-    unused = Step(jnp.int32(UNUSED), jnp.int32(FLY), none, none, jnp.int32(0), jnp.float64(0.0))
+    unused = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, jnp.int32(0), jnp.float64(0.0))
     n_used = steps.kind.shape[0] if n_used is None else n_used
     _, nodes = scan_used(apply, init, steps, n_used, idle, unused)
     return nodes
 
 
-def sample(nodes: Node, steps: Step, faces_normal_of, e, mu_t, g, t):
+def sample(nodes: Node, steps: Step, faces_normal_of, law: AbstractContactLaw, c, g, t):
     """Position and velocity at times ``t`` from the nodes: quintic Hermite interpolation
     within a step (exact for polynomials of degree 5; the RK steps themselves are the
-    accuracy limit), the closed form within a summed Zeno series."""
+    accuracy limit), the law's closed form within a summed Zeno series."""
     shape = jnp.shape(t)
     t = jnp.reshape(t, (-1,))
-    used = steps.kind != UNUSED
+    used = steps.kind != STEP_UNUSED
     starts = jnp.where(used, nodes.t0, jnp.inf)
     k = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
     nd = jax.tree.map(lambda x: x[k], nodes)
@@ -482,15 +504,21 @@ def sample(nodes: Node, steps: Step, faces_normal_of, e, mu_t, g, t):
     d21 = 0.5 * (3 * s2 - 8 * s3 + 5 * s4)
     vel = (d00 * nd.p0 + d10 * hh * nd.v0 + d20 * hh**2 * nd.a0 + d01 * nd.p1 + d11 * hh * nd.v1 + d21 * hh**2 * nd.a1) / hh
 
-    # Inside a Zeno series: the closed form of estim.forward._train.
-    zeno = (steps.kind[k] == ZENO)
+    after = t >= nd.t1
+    if not law.summable:  # (no summed series)
+        pos = jnp.where(after[:, None], nd.p1, pos)
+        vel = jnp.where(after[:, None], nd.v1_post, vel)
+        return pos.reshape(shape + (3,)), vel.reshape(shape + (3,))
+
+    # Inside a Zeno series: the law's closed form.
+    zeno = (steps.kind[k] == STEP_ZENO)
     a = jnp.array([0.0, 0.0, -1.0]) * g
 
     def in_series(v0, normal, tau):
         ok = jnp.dot(v0, normal) > 0
         normal = jnp.where(ok, normal, jnp.array([0.0, 0.0, 1.0]))
         sr = series(jnp.where(ok, v0, normal), normal, a)
-        return state_at(sr, tau, e, mu_t, jnp.inf)
+        return law.state_at(sr, tau, c, jnp.inf)
 
     normal = faces_normal_of(jnp.maximum(steps.face[k], 0))
     # Inputs of the unused branch are kept harmless: a NaN there would poison reverse-mode
@@ -499,7 +527,6 @@ def sample(nodes: Node, steps: Step, faces_normal_of, e, mu_t, g, t):
     normal = jnp.where(zeno[:, None], normal, jnp.array([0.0, 0.0, 1.0]))
     v_z0 = jnp.where(zeno[:, None], nd.v0, normal)
     dp, v_z = jax.vmap(in_series)(v_z0, normal, tau_z)
-    after = t >= nd.t1
     pos = jnp.where(zeno[:, None], nd.p0 + dp, pos)
     vel = jnp.where(zeno[:, None], v_z, vel)
     pos = jnp.where(after[:, None], nd.p1, pos)
@@ -515,50 +542,54 @@ class OdeSolution(AbstractSolution):
         nodes: start and end state of every step, per ball.
         steps: the steps' kinds and faces, per ball.
         normals: the unit normal of every face (per ball: the face table depends on r).
-        e, mu_t, gravity: what the Zeno closed forms need.
+        law: the contact law (static; ``estim.forward.laws``), whose closed forms give the
+            state inside a summed Zeno series.
+        coefficients: the law's numbers per ball (``law.coefficients``).
+        gravity: the magnitude g of gravity.
     """
 
     nodes: Node
     steps: Step
     normals: Float[Array, "*batch faces 3"]
-    e: Float[Array, "*batch"]
-    mu_t: Float[Array, "*batch"]
+    law: AbstractContactLaw = eqx.field(static=True)
+    coefficients: PyTree[Float[Array, "*batch"]]
     gravity: Float[Array, ""]
 
     def evaluate(self, t):
-        batch = self.e.shape
+        batch = self.nodes.t0.shape[:-1]
 
         def flat(x):
             return x.reshape((-1,) + x.shape[len(batch):])
 
-        nodes, steps = jax.tree.map(flat, self.nodes), jax.tree.map(flat, self.steps)
+        nodes, steps, coefficients = jax.tree.map(flat, (self.nodes, self.steps, self.coefficients))
 
-        def one(nd, st, normals, e, mu_t):
-            return sample(nd, st, lambda f: normals[f], e, mu_t, self.gravity, t)
+        def one(nd, st, normals, c):
+            return sample(nd, st, lambda f: normals[f], self.law, c, self.gravity, t)
 
-        p, v = jax.vmap(one)(nodes, steps, flat(self.normals), flat(self.e), flat(self.mu_t))
+        p, v = jax.vmap(one)(nodes, steps, flat(self.normals), coefficients)
         return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
 
 
-def list_events(nodes: Node, steps: Step, normals, e, mu_t, g, max_events: int) -> Events:
+def list_events(nodes: Node, steps: Step, normals, law: AbstractContactLaw, c, g, max_events: int) -> Events:
     """The contact events of one ball, as on the closed-form path (``estim.forward._trajectory``):
-    every CONTACT step; for a summed series (ZENO) its bounces whose flight lasts at least
-    ``LISTED_FLIGHT`` (all of them before ``t_end`` for e = 1), each from the closed form
-    of ``estim.forward._train``, then a settle event (``REST``) where it accumulates (none for a
-    series cut at ``t_end``)."""
-    zeno = steps.kind == ZENO
-    contact = steps.kind == CONTACT
+    every STEP_CONTACT step; for a summed series (STEP_ZENO) its bounces whose flight lasts
+    at least ``LISTED_FLIGHT`` (all of them before ``t_end`` for e = 1), each from the law's
+    closed form, then a settle event (``REST``) where it accumulates (none for a series cut
+    at ``t_end``)."""
+    zeno = steps.kind == STEP_ZENO
+    contact = steps.kind == STEP_CONTACT
     cut = zeno & (steps.bound == 1)
     normal = normals[jnp.maximum(steps.face, 0)]
     # The first flight of a series lasts T0 = 2 w / |a_n| and flight j, T0 e^j.
     w = jnp.where(zeno, jnp.sum(nodes.v0 * normal, axis=1), 1.0)
     a_n = jnp.where(zeno, normal[:, 2], 1.0) * -g
     t_flight = jnp.where(zeno & (w > 0), 2.0 * w / -a_n, 1.0)
-    before_end = geometric_count(e, (nodes.t1 - nodes.t0) / t_flight)
-    le = jnp.log(jnp.where((e > 0) & (e < 1), e, 0.5))
-    listable = jnp.where(t_flight >= LISTED_FLIGHT, jnp.floor(jnp.log(LISTED_FLIGHT / t_flight) / le) + 1.0, 0.0)
-    listable = jnp.where((e > 0) & (e < 1), listable, jnp.where(e == 0, 0.0, jnp.inf))
-    bounces = jnp.where(zeno, jnp.minimum(before_end, listable), 0.0)
+    if law.summable:
+        before_end = law.bounces_within((nodes.t1 - nodes.t0) / t_flight, c)
+        listable = law.flights_longer(t_flight, LISTED_FLIGHT, c)
+        bounces = jnp.where(zeno, jnp.minimum(before_end, listable), 0.0)
+    else:  # (no summed series)
+        bounces = jnp.zeros_like(t_flight)
     total = jnp.where(contact, 1.0, bounces + (zeno & ~cut))
     # Slots are int32 indices; a count past max_events only marks the list truncated.
     capped = jnp.minimum(total, max_events + 1.0)
@@ -575,17 +606,20 @@ def list_events(nodes: Node, steps: Step, normals, e, mu_t, g, max_events: int) 
     def one_bounce(v0, n, jj):
         ok = jnp.dot(v0, n) > 0
         n = jnp.where(ok, n, jnp.array([0.0, 0.0, 1.0]))
-        t_b, x_b, pre_b, post_b, _ = bounce(series(jnp.where(ok, v0, n), n, a), jj, e, mu_t)
+        t_b, x_b, pre_b, post_b, _ = law.bounce(series(jnp.where(ok, v0, n), n, a), jj, c)
         return t_b, x_b, pre_b, post_b
 
-    # Inputs of the unused branch are kept harmless (no NaN to poison derivatives).
-    n_k = jnp.where(in_series[:, None], normal[k], jnp.array([0.0, 0.0, 1.0]))
-    v_k = jnp.where(in_series[:, None], nd.v0, n_k)
-    t_b, x_b, pre_b, post_b = jax.vmap(one_bounce)(v_k, n_k, jnp.where(in_series, j, 1.0))
-    t = jnp.where(in_series, nd.t0 + t_b, nd.t1)
-    pos = jnp.where(in_series[:, None], nd.p0 + x_b, nd.p1)
-    pre = jnp.where(in_series[:, None], pre_b, nd.v1)
-    post = jnp.where(in_series[:, None], post_b, nd.v1_post)
+    if law.summable:
+        # Inputs of the unused branch are kept harmless (no NaN to poison derivatives).
+        n_k = jnp.where(in_series[:, None], normal[k], jnp.array([0.0, 0.0, 1.0]))
+        v_k = jnp.where(in_series[:, None], nd.v0, n_k)
+        t_b, x_b, pre_b, post_b = jax.vmap(one_bounce)(v_k, n_k, jnp.where(in_series, j, 1.0))
+        t = jnp.where(in_series, nd.t0 + t_b, nd.t1)
+        pos = jnp.where(in_series[:, None], nd.p0 + x_b, nd.p1)
+        pre = jnp.where(in_series[:, None], pre_b, nd.v1)
+        post = jnp.where(in_series[:, None], post_b, nd.v1_post)
+    else:  # (every event ends a step)
+        t, pos, pre, post = nd.t1, nd.p1, nd.v1, nd.v1_post
     # A contact without normal speed is a landing to rest, not an impact.
     settle = (zeno[k] & ~in_series) | (~zeno[k] & (jnp.linalg.norm(pre - post, axis=1) <= REST_SPEED))
     zero = jnp.zeros_like(pos)
@@ -613,8 +647,10 @@ def finish(scene, params, t_end, ts, settings: OdeSettings, max_events: int, pl:
     nodes = replay(scene, params, t_end, pl.steps, settings, n_used)
     faces = faces_for(scene, params.radius)
     normals = faces.row[:, NORMAL]
-    pos, vel = sample(nodes, pl.steps, lambda f: normals[f], params.e, params.mu_t, scene.gravity, ts)
-    events = list_events(nodes, pl.steps, normals, params.e, params.mu_t, scene.gravity, max_events)
+    law = law_of(scene)
+    c = law.coefficients(params)
+    pos, vel = sample(nodes, pl.steps, lambda f: normals[f], law, c, scene.gravity, ts)
+    events = list_events(nodes, pl.steps, normals, law, c, scene.gravity, max_events)
     last = jnp.maximum(pl.n_steps - 1, 0)
     final = State(t_end, nodes.p1[last], nodes.v1_post[last])
     return pos, vel, events, final, nodes, pl.steps, normals, pl.complete

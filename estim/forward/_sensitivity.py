@@ -27,9 +27,10 @@ from .._config import require_x64
 from ..model._params import Params
 from ..model._scene import Scene
 from ._contact import NORMAL, faces_for
-from ._native import active_plan
+from ._dispatch import closed_form_plan
 from ._solver import segments_of
 from ._trajectory import event_flights, list_events
+from .laws import law_of
 
 __all__ = ["EventSensitivity", "event_sensitivities"]
 
@@ -107,11 +108,12 @@ def _sensitivities(make, scene, theta, t_end, max_segments, max_events, grazing_
 
     def solve(th):
         sc, prm = unpack(th)
-        pl = active_plan(sc, prm, t_end, max_segments)
+        pl = closed_form_plan(sc, prm, t_end, max_segments)
         segs = segments_of(sc, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
-        g = sc.gravity
-        events = list_events(segs, pl.decisions, prm.e, prm.mu_t, g, max_events)
-        flights = event_flights(segs, pl.decisions, prm.e, prm.mu_t, g, max_events)
+        g, law = sc.gravity, law_of(sc)
+        c = law.coefficients(prm)
+        events = list_events(segs, pl.decisions, law, c, g, max_events)
+        flights = event_flights(segs, pl.decisions, law, c, g, max_events)
         return sc, prm, events, flights
 
     _, _, events, (_, _, _, _, crossing) = solve(theta)

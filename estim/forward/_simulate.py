@@ -16,6 +16,7 @@ from ..model._params import PARAM_CHECKS, Params, check_t_end
 from ..model._scene import Scene
 from . import _native, _ode
 from ._balls import ball_parts, check_outside, flat_params, inside, map_balls
+from ._dispatch import NATIVE, ODE, path
 from ._ode import OdeSettings
 from ._record import layout_of, pack, unpack
 from ._solver import plan
@@ -24,6 +25,7 @@ from ._trajectory import (
     Trajectory,
     check_keep,
 )
+from .laws import law_of
 
 __all__ = ["simulate"]
 
@@ -59,6 +61,12 @@ def simulate(
     Either way the result is differentiable (``jax.grad``, ``jax.jacfwd``) with respect to
     every field of ``params``, ``t_end``, the sample times and the scene geometry;
     derivatives of event times are the event-time sensitivities of the hybrid system.
+
+    What a bounce does is the scene's contact law (``Scene.law``, ``estim.forward.laws``; the
+    seed's e and mu_t law by default). A law whose bounce series have a closed form (the
+    seed's) has them summed, Zeno series included; any other law is followed bounce by
+    bounce, bounded by ``max_segments`` (``max_steps``). The native kernels run the
+    closed-form path where they support the law (``estim.forward._native.supports``).
 
     Args:
         scene: the scene (:func:`estim.load_scene`).
@@ -153,7 +161,8 @@ def simulate(
     # Called with concrete values, the inputs were checked above and completion is checked
     # below, in Python: the compiled program then has no host callbacks and can live in
     # JAX's persistent compilation cache. Inside a user's jit/grad the checks run in-graph.
-    if scene.air is not None or solver is not None:
+    route = path(scene, solver)
+    if route == ODE:
         rk = solver or diffrax.Tsit5()
         settings = OdeSettings(rk, jnp.asarray(rtol, dtype=jnp.float64), jnp.asarray(atol, dtype=jnp.float64),
                                jnp.asarray(contact_slack, dtype=jnp.float64), int(max_steps))
@@ -161,7 +170,7 @@ def simulate(
         message = _INCOMPLETE_ODE
     else:
         traj = solve_closed_form(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep,
-                         _native.active())
+                                 route == NATIVE)
         message = _INCOMPLETE
     # (Read from NumPy views of the rows: no eager JAX operation.)
     if throw and not traced:
@@ -207,9 +216,10 @@ def solve_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
     def unflat(x):
         return x.reshape(batch + x.shape[1:])
 
+    law = law_of(scene)
     solution = _ode.OdeSolution(
-        nodes=jax.tree.map(unflat, nodes), steps=jax.tree.map(unflat, steps),
-        normals=unflat(normals), e=unflat(flat.e), mu_t=unflat(flat.mu_t), gravity=scene.gravity,
+        nodes=jax.tree.map(unflat, nodes), steps=jax.tree.map(unflat, steps), normals=unflat(normals),
+        law=law, coefficients=jax.tree.map(unflat, law.coefficients(flat)), gravity=scene.gravity,
     )
     return Trajectory.pack(ts, unflat(pos), unflat(vel), jax.tree.map(unflat, events),
                            jax.tree.map(unflat, final), unflat(complete), solution, keep=keep)
@@ -238,9 +248,10 @@ def solve_closed_form(scene, params, t_end, ts, max_segments, max_events, checks
     def unflat(x):
         return x.reshape(batch + x.shape[1:])
 
-    if native:
+    if native and _native.supports(law_of(scene), scene):
         # The primal on the native kernels, derivatives replayed in JAX (estim.forward._native);
-        # the kernel runs the argument checks too, and fails with their message.
+        # the kernel runs the argument checks too, and fails with their message. (``native``
+        # asks for the kernels; what they do not support runs in JAX below.)
         record, flags = _native.trajectory_rows(scene, params, t_end, ts, max_segments, max_events, keep, checks,
                                                 _INPUT_CHECKS + (_INCOMPLETE,))
         layout = _native.trajectory_layout(ts.shape[0], max_segments, max_events, keep)

@@ -3,10 +3,10 @@
 The motion of a ball is a sequence of *segments*, each in closed form:
 
 - ``FLIGHT``: a parabola ``p + v tau + a tau^2 / 2`` ending at a contact or at ``t_end``;
-- ``TRAIN``: a whole series of bounces on one face (any supporting face in general,
-  ``estim.forward._train``; here the horizontal case). After a bounce with
-  post-impact horizontal velocity u and vertical speed w, flight j lasts ``T0 e^j``
-  (``T0 = 2 w / g``) and carries horizontal velocity ``u mu^j``, so bounce n happens at
+- ``TRAIN``: a whole series of bounces on one face, summed in closed form by the contact
+  law (``estim.forward.laws``). For the seed's factor law, after a bounce with post-impact
+  horizontal velocity u and vertical speed w, flight j lasts ``T0 e^j`` (``T0 = 2 w / g``)
+  and carries horizontal velocity ``u mu^j``, so bounce n happens at
 
       t_n = t_0 + T0 (1 - e^n) / (1 - e),   x_n = x_0 + u T0 (1 - (e mu)^n) / (1 - e mu).   (1)
 
@@ -19,6 +19,11 @@ The motion of a ball is a sequence of *segments*, each in closed form:
 
 So the number of segments is bounded by the number of faces a ball visits, not by the
 number of bounces, and compute stays bounded for every e, including e = 0 and e = 1.
+
+The contact law is the scene's (``estim.forward.laws.law_of``): every reset and every
+series closed form below is the law's. A law that is not summable has no TRAIN: every
+bounce is a segment of its own, a ball comes to rest where its rebound falls below
+``REST_SPEED``, and compute is bounded by ``max_segments``.
 
 Two passes keep this exact *and* differentiable:
 
@@ -40,31 +45,40 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..model._scene import Scene
+from ._constants import (
+    AXIS_TOL,
+    BOUNCES,
+    CONTACT,
+    END,
+    EXIT,
+    FLIGHT,
+    REST_SPEED,
+    SETTLE,
+    SLIDE,
+    TRAIN,
+    UNUSED,
+)
 from ._contact import (
     CENTRE,
     HALF,
-    REST_SPEED,
     Faces,
     ballistic,
     face_entering_time,
     face_normal,
     faces_for,
     first_contact,
-    geometric_count,
     inner,
     on_face,
-    reset,
     series_clear,
     slide_exit_time,
     train_reach,
 )
 from ._scan import scan_used
-from ._train import series, series_end, state_at
+from .laws import AbstractContactLaw, law_of, series
 
-# Segment kinds.
-FLIGHT, TRAIN, SLIDE, UNUSED = 0, 1, 2, 3
-# Why a segment ends.
-END, CONTACT, EXIT, BOUNCES, SETTLE = 0, 1, 2, 3, 4
+# Segment kinds (Decision.kind: FLIGHT, TRAIN, SLIDE, UNUSED) and why a segment ends
+# (Decision.reason: END, CONTACT, EXIT, BOUNCES, SETTLE) are numbered once, in
+# estim.forward._constants, for this planner, the ODE path's modes and the native kernels.
 
 
 class Decision(eqx.Module):
@@ -91,34 +105,15 @@ class Segment(eqx.Module):
     normal: Float[Array, "3"]  # normal of the face a TRAIN bounces on (else zero)
 
 
-def contact_velocity(v, n, a, e, mu_t):
-    """Velocity after touching a face of normal n (eq. (3) of ``estim.forward._contact``).
-
-    Touching with a normal speed below ``REST_SPEED`` is not an impact: the normal
-    component is dropped and nothing else changes. An impact whose rebound is below
-    ``REST_SPEED`` on a face that supports the ball ends a bounce series; it stands for the
-    limit of infinitely many vanishing bounces, each scaling the tangential velocity by
-    mu_t, so the ball keeps its tangential velocity only if mu_t = 1 (this makes e = 0 the
-    limit of e -> 0: the ball sticks where it lands).
-    """
-    vn = inner(v, n)
-    tangential = v - vn * n
-    impact = -vn > REST_SPEED
-    bounced = reset(v, n, e, mu_t)
-    settles = (e * -vn <= REST_SPEED) & (inner(n, a) < 0)
-    kept = jnp.where(mu_t == 1.0, 1.0, 0.0)
-    return jnp.where(impact, jnp.where(settles, tangential * kept, bounced), tangential)
-
-
 def _slide_frame(faces, support, v, a):
     """Velocity and acceleration of a ball sliding on face ``support``."""
     n = face_normal(faces, jnp.maximum(support, 0))
     return v - inner(v, n) * n, a - inner(a, n) * n
 
 
-def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segment:
-    """Carry the state (t, p, v) through one segment with structure ``d``."""
-    e, mu_t = params.e, params.mu_t
+def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decision, t_end) -> Segment:
+    """Carry the state (t, p, v) through one segment with structure ``d``, under the
+    contact law ``law`` with the ball's coefficients ``c`` (``law.coefficients``)."""
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     slide_v, slide_a = _slide_frame(faces, d.support, v, a)
@@ -134,7 +129,7 @@ def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segme
     tau_b = jnp.where(jnp.isfinite(tau_b), tau_b, 0.0)
     p_b, v_b = ballistic(p, v0, acc, tau_b)
     n_face = face_normal(faces, face)
-    v_b_post = jnp.where(d.reason == CONTACT, contact_velocity(v_b, n_face, a, e, mu_t), v_b)
+    v_b_post = jnp.where(d.reason == CONTACT, law.contact_velocity(v_b, n_face, a, c), v_b)
 
     # TRAIN: a closed-form series of bounces, to bounce n, to its accumulation, or to t_end.
     # (lax.cond: for one ball a branch, so a flight skips the series' closed forms; under
@@ -151,15 +146,18 @@ def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segme
         # t_end may be one that never ends (e = 1, n = inf: duration T0 * inf, whose derivative
         # w.r.t. T0 is inf and turned the discarded branch's zero cotangent into NaN in
         # reverse mode), so it is evaluated at a harmless n = 1 there.
-        duration, travel, v_full = series_end(s, jnp.where(at_end, 1.0, n_tr), e, mu_t)
+        duration, travel, v_full = law.series_end(s, jnp.where(at_end, 1.0, n_tr), c)
         tau_t = jnp.where(at_end, t_end - t, jnp.where(jnp.isfinite(duration), duration, 0.0))
-        tr_travel, tr_vel = state_at(s, tau_t, e, mu_t, n_tr)
+        tr_travel, tr_vel = law.state_at(s, tau_t, c, n_tr)
         return tau_t, p + jnp.where(at_end, tr_travel, travel), jnp.where(at_end, tr_vel, v_full), n_sup
 
     def no_train(_):
         return 0.0 * t, p, v, up + 0.0 * v
 
-    tau_t, p_tr, v_tr_end, n_sup = jax.lax.cond(is_train, train, no_train, None)
+    if law.summable:
+        tau_t, p_tr, v_tr_end, n_sup = jax.lax.cond(is_train, train, no_train, None)
+    else:  # (no TRAIN segments: every bounce is a segment of its own)
+        tau_t, p_tr, v_tr_end, n_sup = no_train(None)
 
     tau = jnp.where(is_train, tau_t, tau_b)
     unused = d.kind == UNUSED
@@ -170,17 +168,15 @@ def advance(faces: Faces, gravity, params, t, p, v, d: Decision, t_end) -> Segme
     return Segment(t, p, v0, acc, t1, p1, v1, v1_post, jnp.where(is_train, n_sup, 0.0))
 
 
-def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
+def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segment, d: Decision):
     """Kind, support and bounce count of the segment that follows ``seg``."""
-    e, mu_t = params.e, params.mu_t
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     face = jnp.maximum(d.face, 0)
     n_face = face_normal(faces, face)
     post = seg.v1_post
     settled = (jnp.abs(inner(post, n_face)) <= REST_SPEED) & (inner(n_face, a) < 0)
-    up = n_face[2] > 1.0 - 1e-12
-    inclined = (inner(n_face, a) < 0) & ~up & (e < 1)
+    up = n_face[2] > 1.0 - AXIS_TOL
 
     def on_upward(_):
         """A bounce series on an upward face: how many bounces provably land on it."""
@@ -190,32 +186,35 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
         reach = train_reach(faces, face, seg.p1, u, w * w / (2.0 * g))
         speed = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
         y = jnp.where(speed > 0, reach / jnp.where(speed > 0, speed * t_flight, 1.0), jnp.inf)
-        return jnp.where(reach < 0, 0.0, geometric_count(e * mu_t, y))
+        return jnp.where(reach < 0, 0.0, law.landings_within(y, c))
 
     def on_bevel(_):
         """On an inclined face that supports the ball (an edge bevel) only a whole Zeno series
         is summed, when its accumulation point and its first landing lie on the face ..."""
         n_inc = jnp.where(inclined, n_face, jnp.array([0.0, 0.0, 1.0]))
         s = series(jnp.where(inclined, post, n_inc), n_inc, a)
-        _, x_inf, _ = series_end(s, jnp.inf, e, mu_t)
-        _, x_one, _ = series_end(s, 1.0, e, mu_t)
+        t_total, x_inf, _ = law.series_end(s, jnp.inf, c)
+        _, x_one, _ = law.series_end(s, 1.0, c)
         row = faces.row[face]
         lands = on_face(seg.p1 + x_inf, row[CENTRE], row[HALF], faces.radius) & on_face(
             seg.p1 + x_one, row[CENTRE], row[HALF], faces.radius
         )
-        # ... and nothing else in its way (a ball bouncing on a bevel into a riser beside it
-        # is followed bounce by bounce instead).
-        t_total = s.period / jnp.where(inclined, 1.0 - e, 1.0)
+        # ... and nothing else in its way over its whole duration (a ball bouncing on a
+        # bevel into a riser beside it is followed bounce by bounce instead).
         clear = series_clear(faces, face, seg.p1, post, t_total, g)
         return jnp.where(lands & clear, jnp.inf, 0.0)
 
-    # (lax.cond: for one ball only the count its face needs is computed.)
-    n_train = jax.lax.cond(
-        inclined, on_bevel, lambda _: jax.lax.cond(up, on_upward, lambda _: jnp.float64(0.0), None), None
-    )
+    if law.summable:
+        inclined = (inner(n_face, a) < 0) & ~up & law.accumulates(c)
+        # (lax.cond: for one ball only the count its face needs is computed.)
+        n_train = jax.lax.cond(
+            inclined, on_bevel, lambda _: jax.lax.cond(up, on_upward, lambda _: jnp.float64(0.0), None), None
+        )
+    else:  # bounce by bounce
+        inclined, n_train = jnp.bool_(False), jnp.float64(0.0)
     # A wall hit while sliding keeps the ball on its face.
     if_support = face_normal(faces, jnp.maximum(d.support, 0))
-    stays = (d.kind == SLIDE) & (jnp.abs(inner(n_face, if_support)) < 1e-12)
+    stays = (d.kind == SLIDE) & (jnp.abs(inner(n_face, if_support)) < AXIS_TOL)
 
     after_contact_kind = jnp.where(
         stays | settled, SLIDE, jnp.where((up | inclined) & (n_train >= 1), TRAIN, FLIGHT)
@@ -237,9 +236,8 @@ def _next_structure(faces: Faces, gravity, params, seg: Segment, d: Decision):
     return kind.astype(jnp.int32), support.astype(jnp.int32), n
 
 
-def _decide_end(faces: Faces, gravity, params, t, p, v, kind, support, n, t_end):
+def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind, support, n, t_end):
     """How the segment starting at (t, p, v) ends: ``(reason, face)``."""
-    e, mu_t = params.e, params.mu_t
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     is_train = kind == TRAIN
@@ -261,10 +259,12 @@ def _decide_end(faces: Faces, gravity, params, t, p, v, kind, support, n, t_end)
         up = jnp.array([0.0, 0.0, 1.0])
         n_sup = jnp.where(is_train, face_normal(faces, jnp.maximum(support, 0)), up)
         s = series(jnp.where(is_train, v, up), n_sup, a)
-        duration, _, _ = series_end(s, jnp.where(is_train, n, 1.0), e, mu_t)
+        duration, _, _ = law.series_end(s, jnp.where(is_train, n, 1.0), c)
         reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
         return reason_t.astype(jnp.int32), jnp.int32(-1)
 
+    if not law.summable:  # (no TRAIN segments)
+        return ballistic_end(None)
     # (lax.cond: for one ball only the end its segment's kind needs is computed.)
     return jax.lax.cond(is_train, train_end, ballistic_end, None)
 
@@ -285,6 +285,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     loop over balls, so that the branches of a segment (``lax.cond``) are branches."""
     scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
     g = scene.gravity
+    law = law_of(scene)
     table = faces_for(scene, jnp.float64(0.0))  # the ball's radius is attached in the loop
     S = max_segments
     d0 = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.float64(0.0), jnp.int32(END), jnp.int32(-1))
@@ -299,10 +300,11 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     def body(carry):
         k, (t, p, v, kind, support, n), _, record, (params, t_end) = carry
         faces = eqx.tree_at(lambda f: f.radius, table, params.radius)
-        reason, face = _decide_end(faces, g, params, t, p, v, kind, support, n, t_end)
+        c = law.coefficients(params)
+        reason, face = _decide_end(faces, g, law, c, t, p, v, kind, support, n, t_end)
         d = Decision(kind, support, n, reason, face)
-        seg = advance(faces, g, params, t, p, v, d, t_end)
-        following = _next_structure(faces, g, params, seg, d)
+        seg = advance(faces, g, law, c, t, p, v, d, t_end)
+        following = _next_structure(faces, g, law, c, seg, d)
         record = jax.tree.map(lambda r, x: r.at[k].set(x), record, (d, seg))
         state = (seg.t1, seg.p1, seg.v1_post) + following
         # The parameters go round the loop through an optimization barrier, so that XLA does
@@ -328,10 +330,12 @@ def replay(scene: Scene, params, t_end, decisions: Decision, n_used=None) -> Seg
 
     faces = faces_for(scene, params.radius)
     a = jnp.array([0.0, 0.0, -1.0]) * scene.gravity
+    law = law_of(scene)
+    c = law.coefficients(params)
 
     def step(state, d):
         t, p, v = state
-        seg = advance(faces, scene.gravity, params, t, p, v, d, t_end)
+        seg = advance(faces, scene.gravity, law, c, t, p, v, d, t_end)
         return (seg.t1, seg.p1, seg.v1_post), seg
 
     def idle(state):

@@ -8,19 +8,20 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
-from ._contact import REST_SPEED, geometric_count, inner
+from ._constants import BOUNCES, CONTACT, LISTED_FLIGHT, REST_SPEED, SETTLE, TRAIN, UNUSED
+from ._constants import IMPACT as IMPACT
+from ._constants import REST as REST
+from ._contact import inner
 from ._record import Layout, layout_of, pack, unpack
 from ._scan import scan_used
-from ._solver import BOUNCES, CONTACT, SETTLE, TRAIN, UNUSED, Decision, Segment
-from ._train import bounce, series, state_at
+from ._solver import Decision, Segment
+from .laws import AbstractContactLaw, series
 
-# Event kinds.
-IMPACT, REST = 0, 1
+# Event kinds (Events.kind: IMPACT, REST) are numbered in estim.forward._constants; bounces
+# of a Zeno series whose flight is shorter than LISTED_FLIGHT are summed, not listed.
 EVENT_KINDS = ("impact", "settle")
-# Bounces of a Zeno series whose flight is shorter than this are summed, not listed.
-LISTED_FLIGHT = 1e-6
 
 
 class State(eqx.Module):
@@ -72,22 +73,25 @@ class ClosedFormSolution(AbstractSolution):
     Attributes:
         segments: the segments (flights, bounce series, slides) per ball.
         structure: their discrete structure (kinds, faces, bounce counts).
-        e, mu_t, gravity: what the closed forms of the segments need.
+        law: the contact law (static; ``estim.forward.laws``), whose closed forms give the
+            state inside a bounce series.
+        coefficients: the law's numbers per ball (``law.coefficients``: for the factor law
+            ``.e`` and ``.mu_t``).
+        gravity: the magnitude g of gravity.
     """
 
     segments: Segment
     structure: Decision
-    e: Float[Array, "*batch"]
-    mu_t: Float[Array, "*batch"]
+    law: AbstractContactLaw = eqx.field(static=True)
+    coefficients: PyTree[Float[Array, "*batch"]]
     gravity: Float[Array, ""]
 
     def evaluate(self, t):
-        batch = self.e.shape
-        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), self.segments)
-        flat_d = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]), self.structure)
-        e, mu_t = self.e.reshape(-1), self.mu_t.reshape(-1)
-        fn = jax.vmap(lambda s, d, e_, m_: sample(s, d, e_, m_, self.gravity, t))
-        p, v = fn(flat, flat_d, e, mu_t)
+        batch = self.segments.t0.shape[:-1]
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]),
+                            (self.segments, self.structure, self.coefficients))
+        fn = jax.vmap(lambda s, d, c: sample(s, d, self.law, c, self.gravity, t))
+        p, v = fn(*flat)
         return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
 
 
@@ -259,8 +263,9 @@ def trajectory_parts(position, velocity, events: Events, final: State, complete,
     return parts
 
 
-def sample(seg: Segment, d: Decision, e, mu_t, g, t):
-    """Position and velocity of one ball at times ``t`` from its segments."""
+def sample(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, t):
+    """Position and velocity of one ball at times ``t`` from its segments, under the contact
+    law ``law`` with the ball's coefficients ``c``."""
     shape = jnp.shape(t)
     t = jnp.reshape(t, (-1,))
     starts = jnp.where(d.kind != UNUSED, seg.t0, jnp.inf)
@@ -274,12 +279,14 @@ def sample(seg: Segment, d: Decision, e, mu_t, g, t):
     v_bal = s.v0 + s.acc * tau[:, None]
 
     a = jnp.array([0.0, 0.0, -1.0]) * g
+    if not law.summable:  # (no trains)
+        return p_bal.reshape(shape + (3,)), v_bal.reshape(shape + (3,))
 
     def in_train(v0, normal, tau, n):
         is_train = inner(v0, normal) > 0
         normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
         s = series(jnp.where(is_train, v0, normal), normal, a)
-        return state_at(s, tau, e, mu_t, n)
+        return law.state_at(s, tau, c, n)
 
     dp, v_tr = jax.vmap(in_train)(s.v0, s.normal, tau, n)
     is_train = (kind == TRAIN)[:, None]
@@ -288,23 +295,22 @@ def sample(seg: Segment, d: Decision, e, mu_t, g, t):
     return p.reshape(shape + (3,)), v.reshape(shape + (3,))
 
 
-def _listed(seg: Segment, d: Decision, e, g, max_events: int):
+def _listed(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, max_events: int):
     """Events of each segment (elementwise: one segment or many): the bounces of a train
     that are listed, and the number of event slots the segment takes (capped, so that slots
     stay int32 indices; a count past max_events only marks the list truncated)."""
     is_train = d.kind == TRAIN
     contact = (d.reason == CONTACT) & (d.kind != UNUSED)
+    if not law.summable:  # (no trains: a slot per contact)
+        return jnp.zeros_like(d.n), jnp.minimum(jnp.where(contact, 1.0, 0.0), max_events + 1.0)
     a_n = jnp.where(is_train, seg.normal[..., 2], 1.0) * -g
     w = jnp.where(is_train, inner(seg.v0, seg.normal), 1.0)
     t_flight = 2.0 * w / -a_n
     # Bounces of a train: all n when it ran to bounce n; up to t_end when cut there ...
-    before_end = geometric_count(e, (seg.t1 - seg.t0) / t_flight)
+    before_end = law.bounces_within((seg.t1 - seg.t0) / t_flight, c)
     bounces = jnp.where(d.reason == BOUNCES, d.n, jnp.minimum(before_end, d.n))
     # ... and of a Zeno series only those whose flight lasts at least LISTED_FLIGHT.
-    le = jnp.log(jnp.where((e > 0) & (e < 1), e, 0.5))
-    ratio = jnp.log(LISTED_FLIGHT / t_flight)
-    listable = jnp.where(t_flight >= LISTED_FLIGHT, jnp.floor(ratio / le) + 1.0, 0.0)
-    listable = jnp.where((e > 0) & (e < 1), listable, jnp.where(e == 0, 0.0, jnp.inf))
+    listable = law.flights_longer(t_flight, LISTED_FLIGHT, c)
     bounces = jnp.where(jnp.isfinite(d.n), bounces, jnp.minimum(bounces, listable))
     settles = is_train & (d.reason == SETTLE)
     total = jnp.where(contact, 1.0, jnp.where(is_train, bounces, 0.0) + settles)
@@ -322,34 +328,36 @@ def _slot_of(d: Decision, bounces, capped, ends, i):
     return k, jnp.where(train_slot & ~settle_slot, local, 1.0), train_slot, settle_slot
 
 
-def _event_slots(seg: Segment, d: Decision, e, g, max_events: int):
+def _event_slots(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, max_events: int):
     """Map event slots to segments: which segment, which bounce of a train."""
-    bounces, capped = _listed(seg, d, e, g, max_events)
+    bounces, capped = _listed(seg, d, law, c, g, max_events)
     ends = jnp.cumsum(capped)
     i = jnp.arange(max_events, dtype=jnp.float64)
     k, bounce_no, train_slot, settle_slot = _slot_of(d, bounces, capped, ends, i)
     return k, bounce_no, i < ends[-1], train_slot, settle_slot, ends[-1]
 
 
-def _bounce(v0, normal, t0, p0, j, e, mu_t, g):
+def _bounce(v0, normal, t0, p0, j, law, c, g):
     """Bounce j (from 1) of a train: time, position, velocity before and after, and the
     start (time, position, velocity) of the flight that ends at it."""
     is_train = inner(v0, normal) > 0
     normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
     s = series(jnp.where(is_train, v0, normal), normal, jnp.array([0.0, 0.0, -1.0]) * g)
-    t, x, pre, post, (t_s, x_s, v_s) = bounce(s, j, e, mu_t)
+    t, x, pre, post, (t_s, x_s, v_s) = law.bounce(s, j, c)
     return t0 + t, p0 + x, pre, post, (t0 + t_s, p0 + x_s, v_s)
 
 
-def _event(s: Segment, d: Decision, j, train_slot, settle_slot, valid, e, mu_t, g):
+def _event(s: Segment, d: Decision, j, train_slot, settle_slot, valid, law, c, g):
     """One listed event (one slot): ``(t, position, pre, post, face, kind)``, padding where
     ``valid`` is false. ``s`` and ``d`` are its segment; ``j`` its bounce number in a train."""
-    bt, bp, bpre, bpost, _ = _bounce(s.v0, s.normal, s.t0, s.p0, j, e, mu_t, g)
-    plain = ~train_slot | settle_slot
-    t = jnp.where(plain, s.t1, bt)
-    pos = jnp.where(plain, s.p1, bp)
-    pre = jnp.where(plain, s.v1, bpre)
-    post = jnp.where(plain, s.v1_post, bpost)
+    t, pos, pre, post = s.t1, s.p1, s.v1, s.v1_post
+    if law.summable:  # (else there are no trains)
+        bt, bp, bpre, bpost, _ = _bounce(s.v0, s.normal, s.t0, s.p0, j, law, c, g)
+        plain = ~train_slot | settle_slot
+        t = jnp.where(plain, t, bt)
+        pos = jnp.where(plain, pos, bp)
+        pre = jnp.where(plain, pre, bpre)
+        post = jnp.where(plain, post, bpost)
     face = jnp.where(train_slot, d.support, d.face)
     # A contact without normal speed is a landing to rest, not an impact: an impact changes
     # the velocity by at least (1 + e) times the normal speed.
@@ -365,17 +373,19 @@ def _event(s: Segment, d: Decision, j, train_slot, settle_slot, valid, e, mu_t, 
     )
 
 
-def list_events(seg: Segment, d: Decision, e, mu_t, g, max_events: int) -> Events:
+def list_events(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, max_events: int) -> Events:
     """Expand the segments of one ball into its list of contact events (every slot at once:
-    vectorises over slots, and over the balls of a batch under ``vmap``)."""
-    k, j, valid, train_slot, settle_slot, total = _event_slots(seg, d, e, g, max_events)
+    vectorises over slots, and over the balls of a batch under ``vmap``), under the
+    contact law ``law`` with the ball's coefficients ``c``."""
+    k, j, valid, train_slot, settle_slot, total = _event_slots(seg, d, law, c, g, max_events)
     s, dk = jax.tree.map(lambda x: x[k], (seg, d))
-    event = jax.vmap(_event, in_axes=(0, 0, 0, 0, 0, 0, None, None, None))
-    fields = event(s, dk, j, train_slot, settle_slot, valid, e, mu_t, g)
+    event = jax.vmap(lambda *a: _event(*a, law, c, g))
+    fields = event(s, dk, j, train_slot, settle_slot, valid)
     return Events(*fields, count=jnp.minimum(total, max_events).astype(jnp.int32), truncated=total > max_events)
 
 
-def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_segments) -> Events:
+def list_events_used(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, max_events: int,
+                     n_segments) -> Events:
     """``list_events`` slot by slot, doing the work of the used segments and the listed
     events only (a ``lax.scan`` whose unused items skip their work with ``lax.cond``).
 
@@ -389,7 +399,7 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
 
     def count(_, k):
         one = jax.tree.map(lambda x: x[k], (seg, d))
-        return None, jax.lax.cond(k < n_segments, lambda sd: _listed(*sd, e, g, max_events),
+        return None, jax.lax.cond(k < n_segments, lambda sd: _listed(*sd, law, c, g, max_events),
                                   lambda sd: none, one)
 
     none = (jnp.float64(0.0), jnp.float64(0.0))
@@ -400,7 +410,7 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
     def listed(i):
         k, j, train_slot, settle_slot = _slot_of(d, bounces, capped, ends, i)
         s, dk = jax.tree.map(lambda x: x[k], (seg, d))
-        return _event(s, dk, j, train_slot, settle_slot, True, e, mu_t, g)
+        return _event(s, dk, j, train_slot, settle_slot, True, law, c, g)
 
     def padding(i):
         zero, none = jnp.zeros(3), jnp.int32(-1)
@@ -414,15 +424,15 @@ def list_events_used(seg: Segment, d: Decision, e, mu_t, g, max_events: int, n_s
     return Events(*fields, count=jnp.minimum(total, max_events).astype(jnp.int32), truncated=total > max_events)
 
 
-def event_flights(seg: Segment, d: Decision, e, mu_t, g, max_events: int):
+def event_flights(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, max_events: int):
     """For every listed event, the start ``(t, position, velocity, acceleration)`` of the
     ballistic piece that ends at it, and whether the event is a crossing of a face (not a
     settle). Used by the implicit-function sensitivities of ``estim.event_sensitivities``."""
-    k, j, valid, train_slot, settle_slot, _ = _event_slots(seg, d, e, g, max_events)
+    k, j, valid, train_slot, settle_slot, _ = _event_slots(seg, d, law, c, g, max_events)
     s = jax.tree.map(lambda x: x[k], seg)
-    *_, (t_s, p_s, v_s) = jax.vmap(_bounce, in_axes=(0, 0, 0, 0, 0, None, None, None))(
-        s.v0, s.normal, s.t0, s.p0, j, e, mu_t, g
-    )
+    if not law.summable:  # (no trains: every event ends the segment's own flight)
+        return s.t0, s.p0, s.v0, s.acc, valid & ~settle_slot
+    *_, (t_s, p_s, v_s) = jax.vmap(lambda *a: _bounce(*a, law, c, g))(s.v0, s.normal, s.t0, s.p0, j)
     in_train = train_slot & ~settle_slot
     t0 = jnp.where(in_train, t_s, s.t0)
     p0 = jnp.where(in_train[:, None], p_s, s.p0)

@@ -95,6 +95,10 @@ class Scene(eqx.Module):
         balls: the balls the scene defines.
         air: the air the balls fly through (:class:`estim.Air`), or ``None`` for a vacuum:
             then only gravity acts and :func:`estim.simulate` is exact, in closed form.
+        law: static: the contact law of every contact (an
+            ``estim.forward.laws.AbstractContactLaw``), or ``None`` for the seed's factor
+            law (``estim.forward.laws.FactorLaw``: e and mu_t). ``None`` stands for it
+            because the laws are defined after the scene, in ``estim.forward``.
     """
 
     box_centre: Float[Array, "boxes 3"]
@@ -107,6 +111,7 @@ class Scene(eqx.Module):
     face_direction: tuple[tuple[float, float, float], ...] = eqx.field(static=True)
     balls: tuple[Ball, ...] = eqx.field(static=True, default=())
     air: Air | None = None
+    law: object = eqx.field(static=True, default=None)
 
     @property
     def n_boxes(self) -> int:
@@ -128,6 +133,10 @@ class Scene(eqx.Module):
     def with_air(self, air: Air | None) -> Scene:
         """The same scene with another air (``None``: a vacuum, gravity only)."""
         return dataclasses.replace(self, air=_checked_air(air))
+
+    def with_law(self, law) -> Scene:
+        """The same scene with another contact law (``None``: the seed's factor law)."""
+        return dataclasses.replace(self, law=law)
 
     def face_label(self, face: int) -> tuple[str, str]:
         """``(solid name, face)`` of face index ``face``, e.g. ``("step2", "+z")``."""

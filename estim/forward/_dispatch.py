@@ -1,0 +1,37 @@
+"""Which path solves a scene: one decision for ``simulate``, ``fit``, the sensitivities and
+the benchmarks.
+
+- ``ODE``: a scene with air (or an explicit ``solver=``) has no closed form; diffrax
+  integrates its flights (``estim.forward._ode``).
+- ``NATIVE``: the closed form on the native CPU kernels, where they support the scene's
+  contact law (``estim.forward._native.supports``) and are built, current, switched on
+  and on a CPU backend (``estim.forward._native.active``).
+- ``JAX``: the closed form on the JAX planner (``estim.forward._solver``), with the same
+  results: everywhere else.
+"""
+
+from __future__ import annotations
+
+from ..model._scene import Scene
+from . import _native, _solver
+from ._solver import Plan
+
+__all__ = ["NATIVE", "JAX", "ODE", "path", "closed_form_plan"]
+
+NATIVE, JAX, ODE = "native", "jax", "ode"
+
+
+def path(scene: Scene, solver=None) -> str:
+    """The path that solves ``scene``: ``ODE``, ``NATIVE`` or ``JAX`` (module docstring).
+    ``solver``: a diffrax solver the caller asked for (forces the ODE path)."""
+    if scene.air is not None or solver is not None:
+        return ODE
+    return NATIVE if _native.runs(scene) else JAX
+
+
+def closed_form_plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
+    """The closed-form plan of one ball (or, on the kernels, a batch) by the planner that
+    :func:`path` chooses: the discrete structure and its segments, as values."""
+    if path(scene) == NATIVE:
+        return _native.plan(scene, params, t_end, max_segments)
+    return _solver.plan(scene, params, t_end, max_segments)
