@@ -11,9 +11,10 @@ in-process, each checked on one number against a truth computed without the comm
 - ``estim replay --view side`` of that fit: one frame every 1/fps over the data's span, at the
   size asked for.
 
-(``estim bench`` is left out: ``bench speed`` times a fresh process and hundreds of calls,
-``bench fit`` and ``bench accuracy`` run on the seed scene only; tests/test_cli.py and
-tests/test_bench_accuracy.py cover them.)
+``estim bench speed`` times the seed experiment (its three balls, no air): on the seed scene
+it is tested in tests/test_cli.py (a fresh process and hundreds of calls); on every other
+bundled scene it refuses at once, saying why. ``bench fit`` and ``bench accuracy`` take no
+scene (tests/test_cli.py, tests/test_bench_accuracy.py).
 
 Kept short: one ball per scene, a few tenths of a second of motion, fits on 0.8 s of
 tracks at 60 frames per second.
@@ -231,3 +232,13 @@ def test_replay_side_view_of_the_fit(fitted):
             im.seek(k)
             durations.append(im.info["duration"])
     assert durations == [1000 // fps] * len(durations)
+
+
+@pytest.mark.parametrize("name", [n for n in SCENES if n != "stairs.xml"])
+def test_bench_speed_says_why_it_needs_the_seed_scene(name, capsys):
+    scene = estim.load_scene(_path(name))
+    assert main(["bench", "speed", "--scene", _path(name)]) == 2
+    err = capsys.readouterr().err
+    assert "times the seed experiment" in err
+    assert ("it has air" in err) == (scene.air is not None)
+    assert ("it lacks" in err) == (not {"bocce", "golf", "pingpong"} <= {b.name for b in scene.balls})

@@ -139,6 +139,14 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
     if cpus is not None:
         restrict_cpus(cpus)
     scene_path = scene_path or default_scene_path()
+    scene = load_scene(scene_path)
+    # The figures are the seed experiment's (its balls, the golf ball's gradient and batch),
+    # timed in a scene without air: say so before minutes of timing, not after.
+    missing = [b for b in SEED["e"] if b not in {ball.name for ball in scene.balls}]
+    wrong = ([f"it lacks {', '.join(missing)}"] if missing else []) + (["it has air"] if scene.air is not None else [])
+    if wrong:
+        raise ValueError(f"bench speed times the seed experiment, in a scene with its balls "
+                         f"({', '.join(SEED['e'])}) and no air: {scene_path}: {'; '.join(wrong)}")
     # First: the fresh-process first call, before this process compiles anything; then the
     # same with JAX's persistent compilation cache (as the estim command uses it), warmed
     # by one run in another process.
@@ -148,7 +156,6 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         _first_call(scene_path, cache)
         first_cached = _first_call(scene_path, cache)
 
-    scene = load_scene(scene_path)
     t_end = SEED["t_end"]
     three = seed_params(scene)
 

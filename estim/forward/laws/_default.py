@@ -6,7 +6,6 @@ from ...model._scene import Scene
 from ._base import AbstractContactLaw
 from ._factor import FactorLaw
 
-
 # One instance: building an eqx.Module costs microseconds, and an eager simulate asks
 # for the law at every call.
 _FACTOR_LAW = FactorLaw()
