@@ -18,7 +18,13 @@ from ._config import enable_compilation_cache as enable_compilation_cache
 from .fitting._fit import BallFit as BallFit
 from .fitting._fit import FitResult as FitResult
 from .fitting._fit import fit as fit
+from .fitting._job import fit_files as fit_files
 from .fitting._job import fit_pixels as fit_pixels
+from .fitting._job import read_pixel_clip as read_pixel_clip
+from .fitting._pooled import Clip as Clip
+from .fitting._pooled import PooledResult as PooledResult
+from .fitting._pooled import SharedFit as SharedFit
+from .fitting._pooled import fit_clips as fit_clips
 from .forward._effect_report import EffectReport as EffectReport
 from .forward._effect_report import effect_sizes as effect_sizes
 from .forward._ode import OdeSolution as OdeSolution
@@ -64,7 +70,8 @@ _LAZY = {
     "render_frames": ".show._replay", "render_replay": ".show._replay",
     "write_gif": ".show._replay", "write_mp4": ".show._replay", "write_video": ".show._replay",
     "SideView": ".show._sideview", "render_sideview": ".show._sideview",
-    "write_outputs": ".show._outputs",
+    "write_outputs": ".show._outputs", "write_pooled_outputs": ".show._outputs",
+    "plot_forest": ".show._forest",
 }
 
 

@@ -19,13 +19,15 @@ import numpy as np
 
 from .. import _config
 from .._json import dump
-from ..fitting._job import fit_csv
+from ..fitting._job import fit_csv, fit_files, fit_pixels
 from ..forward._dispatch import NATIVE, path
 from ..forward._ode import OdeSettings
 from ..forward._simulate import simulate, solve_closed_form, solve_ode
 from ..forward._trajectory import check_keep
 from ..model._params import Params
 from ..model._scene import load_scene
+from ..tracks._csv import write_tracks_csv
+from ..tracks._synthetic import synthesize_tracks
 from ._demo import DEMO_TRACKS, SEED, default_scene_path, seed_params
 
 __all__ = ["run_speed", "format_speed", "run_fit_bench", "format_fit_bench", "TARGETS", "REFERENCE",
@@ -350,6 +352,117 @@ def format_fit_bench(r: dict) -> str:
                       ("steady_s", "fit, compiled, in-process (s)")):
         rows.append(f"{name:<52} {r[key]:>10.2f} {t[key]['target']:>9} {'met' if t[key]['met'] else 'NOT met':>8}")
     rows.append("fitted e: " + ", ".join(f"{b} {v:.4f}" for b, v in r["e"].items()))
+    return "\n".join(rows)
+
+
+# --------------------------------------------------------------------------- bench clips
+
+# `estim bench clips`: many clips fitted together (estim.fitting._pooled). Targets for the
+# staircase clips on a 2-core machine: from process start without a compilation cache, and
+# compiled.
+CLIPS_TARGETS = {"stairs_cli_cold_s": 30.0, "stairs_compiled_s": 3.0}
+PIXEL_SCALE = 1.5e-3  # m/px of the synthetic pixel clips (about the real table drops')
+
+
+def _stairs_clips(folder: str, n: int, scene) -> list[str]:
+    """``n`` tracks CSVs of the bundled staircase (its three balls at the seed's e, each
+    clip with its own release speed and noise draw: 60 fps, 2 mm, 5% dropped frames)."""
+    paths = []
+    rng = np.random.default_rng(0)
+    for k in range(n):
+        vx = SEED["velocity"][0] + rng.uniform(-0.05, 0.05)
+        truth = {b: {"e": e, "mu_t": SEED["mu_t"], "vx0": vx} for b, e in SEED["e"].items()}
+        tracks = synthesize_tracks(scene, truth, seed=k, n_outliers=0)
+        paths.append(os.path.join(folder, f"stairs-{k:03d}.csv"))
+        write_tracks_csv(paths[-1], tracks, digits=5)
+    return paths
+
+
+def _pixel_clips(folder: str, n: int, scene) -> list[str]:
+    """``n`` pixel tracks (``a;b;`` lines) of the size of the real table drops: the drop
+    scene's ping-pong ball (e = 0.82) dropped from about 1 m, 300 frames at 100 fps,
+    ``PIXEL_SCALE`` m/px, 0.5 px noise."""
+    rng = np.random.default_rng(1)
+    ts = np.arange(300) / 100.0
+    paths = []
+    for k in range(n):
+        p = Params.for_ball(scene, "pingpong", e=0.82, mu_t=0.9, position=(0.0, 0.0, rng.uniform(0.9, 1.1)),
+                            velocity=(rng.uniform(-0.1, 0.1), 0.0, 0.0))
+        pos = np.asarray(simulate(scene, p, float(ts[-1]), ts=ts).position)
+        a = 600.0 + pos[:, 0] / PIXEL_SCALE + rng.normal(0, 0.5, len(ts))
+        b = 1830.0 - pos[:, 2] / PIXEL_SCALE + rng.normal(0, 0.5, len(ts))
+        paths.append(os.path.join(folder, f"drop-{k:03d}.txt"))
+        with open(paths[-1], "w") as f:
+            f.writelines(f"{x:.2f};{y:.2f};\n" for x, y in zip(a, b, strict=True))
+    return paths
+
+
+def _cli_seconds(argv: list[str], env: dict) -> float:
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "estim", *argv], capture_output=True, text=True, env=env,
+                          check=False)
+    if proc.returncode not in (0, 1):
+        raise RuntimeError(f"estim {' '.join(argv[:3])} ... failed:\n{proc.stderr[-2000:]}")
+    return time.perf_counter() - t
+
+
+def _timed(fn) -> tuple[float, object]:
+    t = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t, out
+
+
+def run_clips_bench(*, n: int = 100) -> dict:
+    """``estim fit`` of ``n`` staircase clips (3 balls each, e shared per ball) and of ``n``
+    pixel drops (e shared) together: from process start without a compilation cache, and
+    compiled in-process; beside them one clip's single fit, compiled, in the same process."""
+    stairs_path = default_scene_path()
+    drop_path = os.path.join(os.path.dirname(stairs_path), "drop.xml")
+    stairs, drop = load_scene(stairs_path), load_scene(drop_path)
+    cold_env = dict(os.environ, ESTIM_NO_CACHE="1")
+    pixel_options = dict(pixels=True, ball="pingpong", frame_interval=0.01)
+    out = {"n_clips": n, "devices": len(jax.devices())}
+    with tempfile.TemporaryDirectory() as tmp:
+        csvs, pixels = _stairs_clips(tmp, n, stairs), _pixel_clips(tmp, n, drop)
+        out["stairs_cli_cold_s"] = _cli_seconds(["fit", *csvs, "--scene", stairs_path, "--shared", "e"], cold_env)
+        out["pixels_cli_cold_s"] = _cli_seconds(
+            ["fit", *pixels, "--scene", drop_path, "--shared", "e", "--pixels", "--ball", "pingpong",
+             "--frame-interval", "0.01"], cold_env)
+        for key, scene, files, options in (("stairs", stairs, csvs, {}), ("pixels", drop, pixels, pixel_options)):
+            fit_files(files, scene, shared=("e",), **options)  # compile
+            out[f"{key}_compiled_s"], result = _timed(lambda s=scene, f=files, o=options: fit_files(f, s, shared=("e",), **o))
+            if options:
+                fit_pixels(files[0], scene, ball="pingpong", frame_interval=0.01)
+                out[f"{key}_single_s"], _ = _timed(lambda s=scene, f=files: fit_pixels(f[0], s, ball="pingpong",
+                                                                                       frame_interval=0.01))
+            else:
+                fit_csv(files[0], scene)
+                out[f"{key}_single_s"], _ = _timed(lambda s=scene, f=files: fit_csv(f[0], s))
+            out[f"{key}_per_clip_s"] = out[f"{key}_compiled_s"] / n
+            out[f"{key}_shared"] = {g: {"e": sf.values["e"], "stderr": sf.stderr["e"]}
+                                    for g, sf in result[0].shared.items()}
+    out["targets"] = {k: {"target": f"< {v:g} s", "met": bool(out[k] < v)} for k, v in CLIPS_TARGETS.items()}
+    return out
+
+
+def format_clips_bench(r: dict) -> str:
+    n = r["n_clips"]
+    rows = [f"{'metric':<62} {'measured':>10} {'target':>9} {'status':>8}"]
+    for key, name in (("stairs_cli_cold_s", f"estim fit, {n} staircase clips (3 balls), fresh process, no cache"),
+                      ("stairs_compiled_s", f"the same {n} clips together, compiled, in-process"),
+                      ("stairs_single_s", "one staircase clip alone, compiled, in-process"),
+                      ("pixels_cli_cold_s", f"estim fit --pixels, {n} drop clips, fresh process, no cache"),
+                      ("pixels_compiled_s", f"the same {n} pixel clips together, compiled, in-process"),
+                      ("pixels_single_s", "one pixel clip alone, compiled, in-process")):
+        t = r["targets"].get(key)
+        target, status = (t["target"], "met" if t["met"] else "NOT met") if t else ("", "")
+        rows.append(f"{name + ' (s)':<62} {r[key]:>10.2f} {target:>9} {status:>8}")
+    for key in ("stairs", "pixels"):
+        ratio = r[f"{key}_per_clip_s"] / r[f"{key}_single_s"]
+        rows.append(f"{key}: per clip {r[f'{key}_per_clip_s'] * 1e3:.1f} ms together against "
+                    f"{r[f'{key}_single_s'] * 1e3:.1f} ms alone ({ratio:.2f}x); shared e "
+                    + ", ".join(f"{g} {v['e']:.4f} +- {v['stderr']:.4f}" for g, v in r[f"{key}_shared"].items()))
+    rows.append(f"devices: {r['devices']}")
     return "\n".join(rows)
 
 

@@ -1,5 +1,5 @@
 """The ``estim`` command line: ``simulate``, ``fit``, ``replay``, ``effects``, ``bench speed``,
-``bench fit``, ``bench accuracy``, ``demo``."""
+``bench fit``, ``bench clips``, ``bench accuracy``, ``demo``."""
 
 from __future__ import annotations
 
@@ -10,11 +10,13 @@ import re
 import sys
 import time
 
+import jax
+
 from .._config import enable_compilation_cache
 from .._json import dumps
 from ..fitting import _registry as registry
 from ..fitting._fit import DEFAULT_FREE
-from ..fitting._job import PIXEL_FREE, fit_csv, fit_pixels
+from ..fitting._job import PIXEL_FREE, fit_csv, fit_files, fit_pixels
 from ..fitting._simulation_report import SENSITIVITY_NAMES, sensitivities, simulation_report
 from ..forward._balls import check_outside
 from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
@@ -23,9 +25,11 @@ from ..model._scene import load_scene
 from ..tracks._csv import MAX_ABS_POSITION, MAX_ABS_TIME
 from ._bench import (
     format_accuracy,
+    format_clips_bench,
     format_fit_bench,
     format_speed,
     run_accuracy,
+    run_clips_bench,
     run_fit_bench,
     run_speed,
     write_accuracy,
@@ -119,8 +123,10 @@ def build_parser() -> argparse.ArgumentParser:
                                      "point) of every ball in a tracks file, with standard "
                                      "errors. Exit code 0 on success, 1 when a fit did not "
                                      "converge (results still written), 2 on bad input.")
-    fit.add_argument("tracks", help="tracks CSV (t,ball,x,z[,y] in s and m), or with --pixels "
-                                    "an 'a;b;' pixel track")
+    fit.add_argument("tracks", nargs="+",
+                     help="tracks CSV (t,ball,x,z[,y] in s and m), or with --pixels an 'a;b;' pixel "
+                          "track; several files (clips of the same ball) are fitted together with "
+                          "--shared")
     fit.add_argument("--scene", default=None,
                      help="MJCF scene file (default: data/scenes/stairs.xml)")
     fit.add_argument("--out", default=None, help="output directory for fit.json and plots")
@@ -143,6 +149,18 @@ def build_parser() -> argparse.ArgumentParser:
                           "(names of the parameter registry): vz0, t0 (time offset), y0, vy0, and "
                           "in a scene with air drag_coefficient and spin_x, spin_y, spin_z (rad/s); "
                           "a vector's name stands for its components (velocity, position, spin)")
+    fit.add_argument("--shared", nargs="+", default=None, metavar="PARAM",
+                     choices=registry.NAMES + tuple(p.name for p in registry.REGISTRY if p.components != (p.name,)),
+                     help="with several files: the parameters shared by every clip of a ball (e.g. "
+                          "e drag_coefficient), estimated once from all clips; the release state "
+                          "(and a pixel clip's scale) stays per clip")
+    fit.add_argument("--devices", type=_positive_int, default=None,
+                     help="with --shared: split the clips over this many of the devices JAX sees "
+                          "(default: all)")
+    fit.add_argument("--distributed", action="store_true",
+                     help="with --shared: start jax.distributed first (one process per host, "
+                          "launched as docs/pages/fitting.md says) and split the clips over every "
+                          "device of every host")
     fit.set_defaults(func=_cmd_fit)
 
     bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks.")
@@ -168,6 +186,15 @@ def build_parser() -> argparse.ArgumentParser:
     fitb.add_argument("--json", action="store_true", help="print one JSON object")
     fitb.add_argument("--repeats", type=_positive_int, default=5, help="steady-state repeats")
     fitb.set_defaults(func=_cmd_bench_fit)
+    clipsb = bsub.add_parser("clips", help="many clips fitted together: cold and compiled, per clip",
+                             description="Fit N staircase clips (3 balls each, e shared per ball) "
+                                         "and N pixel drops (e shared) together: estim fit from "
+                                         "process start without a compilation cache, the "
+                                         "compiled fit in-process, and one clip's single fit "
+                                         "beside it.")
+    clipsb.add_argument("--clips", type=_positive_int, default=100, help="clips per set (default 100)")
+    clipsb.add_argument("--json", action="store_true", help="print one JSON object")
+    clipsb.set_defaults(func=_cmd_bench_clips)
     accb = bsub.add_parser("accuracy", help="work-precision table and plot of the ODE path",
                            description="Work-precision study: on the seed scene without air, the "
                                        "closed form against the ODE path forced with diffrax Tsit5, "
@@ -419,6 +446,12 @@ def _cmd_bench_fit(args) -> int:
     return 0
 
 
+def _cmd_bench_clips(args) -> int:
+    r = run_clips_bench(n=args.clips)
+    print(dumps(r, indent=2) if args.json else format_clips_bench(r))
+    return 0
+
+
 def _cmd_bench_accuracy(args) -> int:
     out = args.out
     if out is not None and os.path.exists(out) and not os.path.isdir(out):
@@ -480,9 +513,10 @@ def _cmd_demo(args) -> int:
     summary = run_demo(args.out, scene_path=args.scene)
     print(format_summary(summary))
     print("wrote " + ", ".join(summary["files"]))
-    fit_args = argparse.Namespace(tracks=str(DEMO_TRACKS), scene=args.scene, out=args.out,
+    fit_args = argparse.Namespace(tracks=[str(DEMO_TRACKS)], scene=args.scene, out=args.out,
                                   json=False, loss="cauchy", pixels=False, frame_interval=None,
-                                  metres_per_pixel=None, ball=None, from_bounce=0)
+                                  metres_per_pixel=None, ball=None, from_bounce=0, shared=None,
+                                  devices=None, distributed=False)
     code = _cmd_fit(fit_args)
     print("wrote " + ", ".join(write_replays(args.out, scene_path=args.scene)))
     return code
@@ -539,12 +573,7 @@ def _also(args, base) -> dict:
     return {"free": tuple(base) + tuple(n for n in registry.expand(args.also) if n not in base)}
 
 
-def _cmd_fit(args) -> int:
-    scene = args.scene or default_scene_path()
-    if not os.path.isfile(args.tracks):
-        raise FileNotFoundError(f"tracks file not found: {args.tracks}")
-    say = progress()
-    extra = {}
+def _check_pixel_options(args) -> None:
     if args.pixels:
         if args.frame_interval is None or args.frame_interval <= 0:
             raise UsageError("--pixels needs --frame-interval SECONDS (> 0): a pixel track has no time column")
@@ -552,6 +581,76 @@ def _cmd_fit(args) -> int:
             raise UsageError(f"--metres-per-pixel must be > 0, got {args.metres_per_pixel}")
         if not args.ball:
             raise UsageError("--pixels needs --ball NAME (the ball of the scene the track follows)")
+    else:
+        if args.from_bounce:
+            raise UsageError("--from-bounce only applies with --pixels")
+        for flag in ("frame_interval", "metres_per_pixel", "ball"):
+            if getattr(args, flag) is not None:
+                raise UsageError(f"--{flag.replace('_', '-')} only applies with --pixels")
+
+
+def _distributed_settings() -> dict:
+    """``jax.distributed.initialize``'s coordinator, process count and id from
+    ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` where set (else
+    JAX detects them itself on Slurm, Open MPI and Cloud TPU)."""
+    names = {"coordinator_address": ("JAX_COORDINATOR_ADDRESS", str), "num_processes": ("JAX_NUM_PROCESSES", int),
+             "process_id": ("JAX_PROCESS_ID", int)}
+    out = {}
+    for key, (env, kind) in names.items():
+        if os.environ.get(env):
+            try:
+                out[key] = kind(os.environ[env])
+            except ValueError:
+                raise UsageError(f"{env}={os.environ[env]!r} is not a valid {kind.__name__}") from None
+    return out
+
+
+def _cmd_fit_clips(args, scene, say) -> int:
+    """``estim fit A B ... --shared NAMES``: the clips fitted together."""
+    if args.distributed:
+        jax.distributed.initialize(**_distributed_settings())
+    devices = jax.devices()
+    if args.devices is not None:
+        if args.devices > len(devices):
+            raise UsageError(f"--devices {args.devices}: JAX sees only {len(devices)} device(s)")
+        devices = devices[: args.devices]
+    result, data = fit_files(
+        args.tracks, scene, shared=tuple(args.shared), pixels=args.pixels, ball=args.ball,
+        frame_interval=args.frame_interval, metres_per_pixel=args.metres_per_pixel,
+        from_bounce=args.from_bounce, say=say, loss=args.loss, devices=devices,
+        **_also(args, PIXEL_FREE if args.pixels else DEFAULT_FREE))
+    payload = result.to_json()
+    if args.out and jax.process_index() == 0:
+        from ..show._outputs import write_pooled_outputs  # lazy: matplotlib
+
+        write_pooled_outputs(result, data, args.out)
+        say(f"wrote {os.path.join(args.out, 'fit.json')}, forest.png and fit.png")
+    if args.json:
+        print(dumps(payload, indent=2))
+    else:
+        print(result.format_table())
+    return 0 if result.converged else 1
+
+
+def _cmd_fit(args) -> int:
+    scene = args.scene or default_scene_path()
+    for path in args.tracks:
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"tracks file not found: {path}")
+    _check_pixel_options(args)
+    say = progress()
+    if args.shared is not None:
+        return _cmd_fit_clips(args, scene, say)
+    for flag in ("devices", "distributed"):
+        if getattr(args, flag):
+            raise UsageError(f"--{flag} only applies with --shared (a fit of several clips)")
+    if len(args.tracks) > 1:
+        raise UsageError(f"{len(args.tracks)} files: fitting several clips together needs --shared "
+                         "NAMES (the parameters they share, e.g. --shared e); fit them one at a "
+                         "time otherwise")
+    args.tracks = args.tracks[0]
+    extra = {}
+    if args.pixels:
         result, data, scale, row = fit_pixels(
             args.tracks, scene, ball=args.ball, frame_interval=args.frame_interval,
             metres_per_pixel=args.metres_per_pixel, from_bounce=args.from_bounce, say=say,
@@ -559,11 +658,6 @@ def _cmd_fit(args) -> int:
         extra = {"metres_per_pixel": scale, "surface_row_px": row,
                  "frame_interval_s": args.frame_interval}
     else:
-        if args.from_bounce:
-            raise UsageError("--from-bounce only applies with --pixels")
-        for flag in ("frame_interval", "metres_per_pixel", "ball"):
-            if getattr(args, flag) is not None:
-                raise UsageError(f"--{flag.replace('_', '-')} only applies with --pixels")
         result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss, **_also(args, DEFAULT_FREE))
     payload = result.to_json()
     payload.update(extra)

@@ -57,6 +57,8 @@ from . import _registry as registry
 from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
+from ._missing_physics import format_note, missing_physics
+from ._sharding import gather, mesh_of, padded_size, place
 
 __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
 
@@ -71,6 +73,9 @@ DEFAULT_FREE = ("e", "mu_t", "vx0", "x0", "z0")
 # Fitted as well by default when the tracks have a y coordinate: the lateral release state.
 LATERAL_FREE = ("y0", "vy0")
 MIN_SAMPLES = 8  # samples with x and z that a ball needs (as read_tracks_csv by default)
+# Restarts of a batch of more than 2 SUBSET_MIN keys run only the keys that restart (padded
+# to a power of two, at least this many), when they are at most half of the batch.
+SUBSET_MIN = 8
 
 
 class _Problem(eqx.Module):
@@ -83,6 +88,7 @@ class _Problem(eqx.Module):
     mass: jax.Array  # () (kg), for the air's forces
     fixed: jax.Array  # (len(PARAMETERS),) phi: the values of the parameters not fitted
     scale: jax.Array  # () noise level s of the robust loss (m)
+    anchor: jax.Array  # (3,) the point the observations scale about (pixel_scale)
 
 
 # The ODE path's settings in a fit (scenes with air): the defaults of estim.simulate, with a
@@ -135,16 +141,20 @@ def _residuals(scene, phi, problem, pl, n_used):
     """Masked residuals (flattened), which entries are valid, model positions, impacts."""
     pos, events, ts = _simulate_at(scene, phi, problem, pl, n_used)
     valid = problem.mask & (problem.t >= registry.value(phi, "t0"))[:, None]
+    # A pixel track's metres are its pixels times a scale read off the data; the fitted
+    # factor pixel_scale corrects that scale about the track's anchor (its surface). The
+    # model is brought to the data's metres, not the data to the model's: residuals stay in
+    # the units of the data's noise, and no scale can shrink them all to nothing.
+    pos = problem.anchor + (pos - problem.anchor) / registry.value(phi, "pixel_scale")
     r = jnp.where(valid, pos - problem.obs, 0.0).reshape(-1)
     impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts))).astype(jnp.int32)
     return r, (valid.reshape(-1), pos, impacts)
 
 
-def _lm_step(scene, free, loss, carry, problem, pl, n_used):
-    """One Levenberg-Marquardt iteration for one ball, whose model at theta has the plan
-    ``pl``: residuals and Jacobian at theta (forward mode, one simulation), keep the best
-    point seen, step."""
-    theta, state, best = carry
+def _linearise(scene, free, loss, theta, problem, pl, n_used):
+    """Residuals ``r`` and their Jacobian ``J`` with respect to theta (forward mode, one
+    simulation with the plan ``pl``), the diagnostics ``aux`` of ``_residuals``, the
+    residuals in noise units ``u`` and the robust loss (inf where J is not finite)."""
 
     def evaluate(theta):
         r, aux = _residuals(scene, registry.to_physical(theta, free, problem.fixed), problem, pl, n_used)
@@ -153,7 +163,15 @@ def _lm_step(scene, free, loss, carry, problem, pl, n_used):
     J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
     u = r / problem.scale
     value = jnp.sum(robust_loss(u, loss))
-    value = jnp.where(jnp.all(jnp.isfinite(J)), value, jnp.inf)
+    return J, r, aux, u, jnp.where(jnp.all(jnp.isfinite(J)), value, jnp.inf)
+
+
+def _lm_step(scene, free, loss, carry, problem, pl, n_used):
+    """One Levenberg-Marquardt iteration for one ball, whose model at theta has the plan
+    ``pl``: residuals and Jacobian at theta (forward mode, one simulation), keep the best
+    point seen, step."""
+    theta, state, best = carry
+    J, r, aux, u, value = _linearise(scene, free, loss, theta, problem, pl, n_used)
     improved = value < state.best_value
     best = jax.tree.map(lambda new, old: jnp.where(improved, new, old), (r, J, aux), best)
     updates, state = _LM.update(
@@ -192,6 +210,7 @@ class BallFit:
     model_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     model_position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    missing_physics: list[dict] = field(default_factory=list)  # effects the scene leaves out
 
     def to_json(self) -> dict:
         out = {k: self.values[k] for k in self.values}
@@ -207,6 +226,8 @@ class BallFit:
             at_noise_floor=self.at_noise_floor,
             notes=self.notes,
         )
+        if self.missing_physics:
+            out["missing_physics"] = self.missing_physics
         return out
 
 
@@ -260,6 +281,8 @@ def fit(
     restarts: int = 5,
     max_segments: int = 48,
     progress: Callable[[str], None] | None = None,
+    balls: dict[str, str] | None = None,
+    anchors: dict[str, tuple[float, float, float]] | None = None,
 ) -> FitResult:
     """Fit every ball of a data set.
 
@@ -285,6 +308,12 @@ def fit(
             After them, a ball whose residuals' spread is clearly below the robust scale it
             was fitted with is polished with that spread (module docstring, step 4).
         progress: called with a short message at each stage.
+        balls: the scene's ball of each key of ``data`` (default: the key is the ball's
+            name). Several tracks of one ball (clips, ``estim.fitting._pooled``) are fitted
+            side by side under their own keys this way.
+        anchors: per key, the point (m) its observed positions scale about when
+            ``pixel_scale`` is fitted or fixed (a pixel track's surface: the first sample's
+            x and the top of the surface; default the origin).
 
     Raises:
         ValueError: data or fixed values that a fit cannot use, naming the ball and the
@@ -295,6 +324,31 @@ def fit(
             outside [0, 1], a fixed release point inside a solid, a ball of radius <= 0.
         KeyError: a ball the scene does not have.
     """
+    return _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
+                    max_segments=max_segments, progress=progress, balls=balls, anchors=anchors)[0]
+
+
+@dataclass
+class _Units:
+    """What a fit worked on, for a fit that goes on from it (``estim.fitting._pooled``):
+    the keys, the fitted names, each key's problem (with the robust scale it ended with),
+    start from the data and theta, the best theta, the noise read from the data and
+    whether each key reached it."""
+
+    names: list[str]
+    free: tuple[str, ...]
+    problems: list[_Problem]
+    inits: list[Initial]
+    starts: list[np.ndarray]
+    theta: np.ndarray
+    noises: list[float]
+    floors: list[bool]
+
+
+def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, progress, balls, anchors=None,
+             devices=None):
+    """:func:`fit`, and what it worked on (``_Units``); the keys split over ``devices``
+    (``estim.fitting._sharding``; default: one device)."""
     require_x64()
     if loss not in ROBUST_LOSSES:
         raise ValueError(f"unknown loss {loss!r}; choose one of {ROBUST_LOSSES}")
@@ -308,7 +362,8 @@ def fit(
             f"fitting {air_free} needs a scene with air: add <option density=...> to the "
             "scene (or Scene.with_air(estim.Air(density=1.204)))"
         )
-    _check_inputs(scene, data, fixed or {})
+    ball_of = {b: (balls or {}).get(b, b) for b in data} if isinstance(data, dict) else {}
+    _check_inputs(scene, data, fixed or {}, ball_of)
     say = progress or (lambda msg: None)
     names = list(data)
     if (set(DEFAULT_FREE) <= set(free) and "y0" not in free
@@ -323,7 +378,7 @@ def fit(
     starts, problems, inits = [], [], []
     n_max = max(len(np.asarray(data[b][0])) for b in names)
     for b in names:
-        spec = scene.ball(b)
+        spec = scene.ball(ball_of[b])
         t, pos = (np.asarray(a, dtype=np.float64) for a in data[b])
         release = fixed.get(b, {}).get("t0", 0.0)
         init = release_start(t, pos, gravity, release_time=release)
@@ -341,14 +396,39 @@ def fit(
             mass=np.float64(spec.mass),
             fixed=phi,
             scale=np.float64(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3),
+            anchor=np.asarray((anchors or {}).get(b, (0.0, 0.0, 0.0)), dtype=np.float64),
         ))
         starts.append(registry.to_theta(phi, free))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
             f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
     batch = jax.tree.map(lambda *xs: np.stack(xs), *problems)
     noises = [float(p.scale) for p in problems]  # read from the data, before any rescaling
+    mesh = None if devices is None else mesh_of(devices)
+
     def run(theta, problems):
-        return jax.device_get(_run(scene, tuple(free), loss, steps, max_segments, theta, problems))
+        """``_run`` on the keys of ``theta`` at once, split over the devices (padded with
+        copies of the first, every sample masked)."""
+        n = theta.shape[0]
+        padded = padded_size(n, mesh)
+        theta = np.concatenate([theta, np.repeat(theta[:1], padded - n, axis=0)])
+        problems = jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[:1], padded - n, axis=0)]), problems)
+        problems = eqx.tree_at(lambda p: p.mask, problems, problems.mask & (np.arange(padded) < n)[:, None, None])
+        out = gather(_run(scene, tuple(free), loss, steps, max_segments, place(theta, mesh),
+                          jax.tree.map(lambda x: place(x, mesh), problems)))
+        return jax.tree.map(lambda x: x[:n], out)
+
+    def run_rows(theta, problems, rows):
+        """``run`` on the keys ``rows`` only where that is worth a program of its own (a
+        large batch of which at most half restart: the keys ``rows`` padded to a power of
+        two, at least ``SUBSET_MIN``, so that few sizes compile), else on every key.
+        Returns the results and the key of each of their rows."""
+        if len(names) <= 2 * SUBSET_MIN or 2 * len(rows) > len(names):
+            return run(theta, problems), list(range(len(names)))
+        size = max(SUBSET_MIN, 1 << (len(rows) - 1).bit_length())
+        pick = np.array(rows + [rows[0]] * (size - len(rows)))
+        sub = jax.tree.map(lambda x: x[pick], problems)
+        sub = eqx.tree_at(lambda p: p.mask, sub, sub.mask & (np.arange(size) < len(rows))[:, None, None])
+        return run(theta[pick], sub), rows
 
     # Growing window: first up to the third resolved bounce, then everything.
     windows = []
@@ -385,10 +465,11 @@ def fit(
             if not ok:
                 trial[i] = _restart(starts[i], free, problems[i].fixed, inits[i],
                                     fixed.get(names[i], {}), grid[attempt], rng)
-        tried = run(trial, batch)
-        for i in range(len(names)):
-            if _objective(tried[2], i, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
-                _adopt((best_theta, best_hist, best_diag), tried, i)
+        rows = [i for i, ok in enumerate(floors) if not ok]
+        tried, at = run_rows(trial, batch, rows)
+        for k, i in enumerate(at):
+            if _objective(tried[2], k, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
+                _adopt_row((best_theta, best_hist, best_diag), tried, i, k)
         floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     # The robust scale once more, from the best fit's residuals. The early fit may have
     # stopped far from its optimum (started from a poor guess) and read a spread the data
@@ -399,14 +480,36 @@ def fit(
     if any(wider):
         say(f"polishing {[n for n, w in zip(names, wider, strict=True) if w]} at the noise read from the residuals")
         problems, batch = _with_scales(problems, batch, [s if w else float(pr.scale) for pr, s, w in zip(problems, scales, wider, strict=True)])
-        polished = run(best_theta, batch)
-        for i in np.flatnonzero(wider):
-            _adopt((best_theta, best_hist, best_diag), polished, i)
+        polished, at = run_rows(np.asarray(best_theta), batch, [int(i) for i in np.flatnonzero(wider)])
+        for k, i in enumerate(at):
+            if wider[i]:
+                _adopt_row((best_theta, best_hist, best_diag), polished, i, k)
         floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     results = {}
     for i, b in enumerate(names):
         results[b] = _report(b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
-    return FitResult(results)
+        explain_misfit(scene, results[b], problems[i])
+    units = _Units(names=names, free=tuple(free), problems=problems, inits=inits, starts=starts,
+                   theta=np.asarray(best_theta), noises=noises, floors=floors)
+    return FitResult(results), units
+
+
+def explain_misfit(scene: Scene, report: BallFit, problem: _Problem) -> None:
+    """For a fit above its noise floor in a scene without air: how far the air the scene
+    leaves out would move this ball over this track (``estim.fitting._missing_physics``),
+    in ``report.missing_physics`` and, where it could explain the misfit, as a note."""
+    if report.at_noise_floor or scene.air is not None or not math.isfinite(report.rms_m):
+        return
+    valid = np.asarray(problem.mask).any(axis=1)
+    span = float(np.max(np.asarray(problem.t)[valid])) - report.values["t0"]
+    if not span > 0:
+        return
+    params = registry.to_params(report.values, radius=problem.radius, mass=problem.mass, air=False)
+    report.missing_physics = missing_physics(scene, params, span, report.noise_m, report.ball)
+    for m in report.missing_physics:
+        if m["explains"]:
+            m["advice_note"] = format_note(m, float(problem.mass))
+            report.notes.append(m["advice_note"])
 
 
 # A track that starts this long after the release (s) is worth a word when its fit fails:
@@ -430,7 +533,7 @@ def _check_release_time(data, fixed) -> None:
             )
 
 
-def _check_inputs(scene, data, fixed) -> None:
+def _check_inputs(scene, data, fixed, ball_of=None) -> None:
     """Reject data and fixed values that fit cannot use, naming the ball and the problem:
     nothing is dropped, clipped, reordered or rescaled silently. NaN in a position is a lost
     detection (masked); anything else must be finite."""
@@ -440,9 +543,10 @@ def _check_inputs(scene, data, fixed) -> None:
         raise TypeError(f"data must be a dict ball -> (t, position), got {type(data).__name__}")
     if not data:
         raise ValueError("no balls to fit")
+    ball_of = ball_of or {b: b for b in data}
     g = float(scene.gravity)
     for b, value in data.items():
-        spec = scene.ball(b)  # KeyError naming the scene's balls
+        spec = scene.ball(ball_of[b])  # KeyError naming the scene's balls
         if not (math.isfinite(spec.radius) and spec.radius > 0):
             raise ValueError(f"ball {b!r}: the scene gives it radius {spec.radius!r}; a radius "
                              "must be > 0 (metres)")
@@ -498,7 +602,7 @@ def _check_inputs(scene, data, fixed) -> None:
                 raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r}: {entry.name} has no effect in a "
                                  "scene without air")
         if "x0" in values and "z0" in values:
-            spec = scene.ball(b)
+            spec = scene.ball(ball_of[b])
             y0 = float(values.get("y0", spec.position[1]))
             release = (float(values["x0"]), y0, float(values["z0"]))
             try:
@@ -510,6 +614,12 @@ def _check_inputs(scene, data, fixed) -> None:
 def _objective(diag, i, loss, problem):
     r, _, (valid, _, _) = diag
     return float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
+
+
+def _adopt_row(best, result, i, k) -> None:
+    """Key i of ``best`` takes its values from row k of the run ``result``."""
+    for x, y in zip(jax.tree.leaves(best), jax.tree.leaves(result), strict=True):
+        x[i] = y[k]
 
 
 def _adopt(best, result, i) -> None:

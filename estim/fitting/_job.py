@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..model._scene import Scene, load_scene
 from ..tracks._csv import read_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
-from ._fit import fit
+from ._fit import DEFAULT_FREE, fit
 from ._initial import initial_guess, split_flights
+from ._pooled import Clip, fit_clips
 
 # A drop filmed from the side starts with an unknown vertical speed.
 PIXEL_FREE = ("e", "mu_t", "vx0", "vz0", "x0", "z0")
+# Clips fitted together also fit each clip's scale (a factor on the scale read from its
+# flights' curvature, which drag biases): the shared physics fixes it better than any one
+# clip's parabolas.
+POOLED_PIXEL_FREE = PIXEL_FREE + ("pixel_scale",)
 
 
 def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
@@ -79,6 +85,40 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
         (0.8247, 1.17)
     """
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    clip = read_pixel_clip(path, scene, ball=ball, frame_interval=frame_interval,
+                           metres_per_pixel=metres_per_pixel, from_bounce=from_bounce, say=say)
+    t, pos = clip.t, clip.position
+    if pad_to is not None and pad_to > len(t):
+        extra = pad_to - len(t)
+        t = np.concatenate([t, np.full(extra, t[-1])])
+        pos = np.concatenate([pos, np.full((extra, 3), np.nan)])
+    fixed = {ball: clip.fixed}
+    free = options.pop("free", PIXEL_FREE)
+    result = fit(scene, {ball: (t, pos)}, free=free, fixed=fixed, progress=say, anchors={ball: clip.anchor},
+                 **options)
+    result.source = os.fspath(path)
+    return result, {ball: (t, pos)}, clip.metres_per_pixel, clip.surface_row
+
+
+@dataclass(frozen=True)
+class PixelClip:
+    """A pixel track in metres, ready to fit: samples from the release (or after a bounce),
+    the release values held fixed (``t0`` at the first sample, ``y0`` the ball's y in the
+    scene), the scale (m/px) and the image row of the surface (px)."""
+
+    t: np.ndarray
+    position: np.ndarray
+    fixed: dict
+    metres_per_pixel: float
+    surface_row: float
+    anchor: tuple[float, float, float]  # the surface under the first sample: pixel_scale scales about it
+
+
+def read_pixel_clip(path, scene: Scene, *, ball: str, frame_interval: float,
+                    metres_per_pixel: float | None = None, from_bounce: int = 0,
+                    say=None) -> PixelClip:
+    """A pixel track in the scene's metres, as :func:`fit_pixels` fits it (its docstring
+    gives the conversion); also one clip of a fit of several (``estim fit A B ... --pixels``)."""
     spec = scene.ball(ball)
     track = read_pixel_track(path, frame_interval=frame_interval, ball=ball)
     if metres_per_pixel is None:
@@ -109,16 +149,8 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
         if say:
             say(f"fitting from t = {t[0]:.3f} s, after bounce {from_bounce}")
     pos[:, 0] -= pos[0, 0] if np.isfinite(pos[0, 0]) else 0.0
-    t0 = float(t[0])
-    if pad_to is not None and pad_to > len(t):
-        extra = pad_to - len(t)
-        t = np.concatenate([t, np.full(extra, t[-1])])
-        pos = np.concatenate([pos, np.full((extra, 3), np.nan)])
-    fixed = {ball: {"t0": t0, "y0": spec.position[1]}}
-    free = options.pop("free", PIXEL_FREE)
-    result = fit(scene, {ball: (t, pos)}, free=free, fixed=fixed, progress=say, **options)
-    result.source = os.fspath(path)
-    return result, {ball: (t, pos)}, metres_per_pixel, surface_row
+    fixed = {"t0": float(t[0]), "y0": spec.position[1]}
+    return PixelClip(t, pos, fixed, float(metres_per_pixel), float(surface_row), (0.0, 0.0, _surface_height(scene)))
 
 
 def _surface_height(scene: Scene) -> float:
@@ -128,3 +160,56 @@ def _surface_height(scene: Scene) -> float:
         if n[2] > 0.5:
             tops.append(float(s))
     return float(max(tops))
+
+
+def clips_from_files(paths, scene: Scene, *, pixels: bool = False, ball: str | None = None,
+                     frame_interval: float | None = None, metres_per_pixel: float | None = None,
+                     from_bounce: int = 0, say=None) -> list[Clip]:
+    """The clips of several files: with ``pixels`` each file is one clip of ``ball``
+    (:func:`read_pixel_clip`, its own scale and surface row), else each ball of each tracks
+    CSV is one clip. Labels are the file names without extension (and ``/ball`` where a
+    file has several balls); the full path where two files share a name."""
+    paths = [os.fspath(p) for p in paths]
+    stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
+    if len(set(paths)) != len(paths):
+        raise ValueError(f"a file is given twice: {sorted({p for p in paths if paths.count(p) > 1})}")
+    names = stems if len(set(stems)) == len(stems) else paths
+    clips = []
+    for path, name in zip(paths, names, strict=True):
+        if pixels:
+            pc = read_pixel_clip(path, scene, ball=ball, frame_interval=frame_interval,
+                                 metres_per_pixel=metres_per_pixel, from_bounce=from_bounce, say=say)
+            clips.append(Clip(label=name, ball=ball, t=pc.t, position=pc.position, fixed=pc.fixed, source=path,
+                              anchor=pc.anchor,
+                              extra={"metres_per_pixel": pc.metres_per_pixel, "surface_row_px": pc.surface_row,
+                                     "frame_interval_s": frame_interval}))
+        else:
+            tracks = read_tracks_csv(path, scene=scene)
+            for b in tracks.balls:
+                label = name if len(tracks.balls) == 1 else f"{name}/{b}"
+                clips.append(Clip(label=label, ball=b, t=tracks.t[b], position=tracks.position[b], source=path))
+    return clips
+
+
+def fit_files(paths, scene: Scene | str, *, shared, pixels: bool = False, ball: str | None = None,
+              frame_interval: float | None = None, metres_per_pixel: float | None = None,
+              from_bounce: int = 0, say=None, **options):
+    """Fit several files together, ``shared`` across the clips of each ball
+    (:func:`estim.fitting._pooled.fit_clips`): ``estim fit A B ... --shared e``. Returns the
+    :class:`PooledResult` and the data ``label -> (t, position)``.
+
+    Raises:
+        ValueError: a ball seen in only one clip (nothing to share), or what the readers and
+            :func:`fit_clips` refuse.
+    """
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    clips = clips_from_files(paths, scene, pixels=pixels, ball=ball, frame_interval=frame_interval,
+                             metres_per_pixel=metres_per_pixel, from_bounce=from_bounce, say=say)
+    seen = [c.ball for c in clips]
+    alone = sorted({b for b in seen if seen.count(b) == 1})
+    if alone:
+        raise ValueError(f"ball(s) {alone} appear in only one clip: shared parameters need a ball "
+                         "in at least two clips")
+    free = options.pop("free", POOLED_PIXEL_FREE if pixels else DEFAULT_FREE)
+    result = fit_clips(scene, clips, shared=shared, free=free, progress=say, **options)
+    return result, {c.label: (c.t, c.position) for c in clips}

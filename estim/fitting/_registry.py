@@ -159,8 +159,9 @@ class Parameter(eqx.Module):
     Attributes:
         name: the entry's name: the component's name for a scalar (``"e"``), the
             :class:`estim.Params` field's for a vector (``"velocity"``).
-        field: the field of :class:`estim.Params` that holds it; ``None`` for the release
-            time ``t0``, which is the model's t = 0 on the data's clock, not a field.
+        field: the field of :class:`estim.Params` that holds it; ``None`` for a quantity of
+            the data, not the ball: the release time ``t0`` (the model's t = 0 on the data's
+            clock) and ``pixel_scale`` (a factor on a pixel track's scale).
         components: the flat names of its components (``("vx0", "vy0", "vz0")``); a scalar
             has one, its own name.
         transform: to unconstrained coordinates (:class:`Identity`, :class:`Sigmoid`,
@@ -252,6 +253,9 @@ REGISTRY: tuple[Parameter, ...] = (
     Parameter("spin", field="spin", components=("spin_x", "spin_y", "spin_z"), unit="rad/s",
               default=(0.0, 0.0, 0.0), needs_air=True, zero_without_air=True,
               doc="angular velocity (constant) for the Magnus force"),
+    Parameter("pixel_scale", field=None, transform=Exp(), default=1.0,
+              doc="factor on a pixel track's metres per pixel about its surface (1: the scale "
+                  "read off the data; fitted per clip where that scale is biased, as by drag)"),
 )
 
 # Every component, in registry order: the layout of the fit's vector phi.

@@ -1,4 +1,4 @@
-"""A fit's files: fit.json and its plots."""
+"""A fit's files: fit.json and its plots (of one data set, or of several clips fitted together)."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import os
 
 from .._json import dump
 from ..fitting._fit import FitResult
+from ..fitting._pooled import PooledResult
+from ._forest import plot_forest
 from ._plots import plot_fit, plot_loss_history, plot_residuals
 
 
@@ -19,4 +21,16 @@ def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = N
     plot_fit(data, result, os.path.join(out_dir, "fit.png"))
     plot_residuals(data, result, os.path.join(out_dir, "residuals.png"))
     plot_loss_history(result, os.path.join(out_dir, "loss.png"))
+    return payload
+
+
+def write_pooled_outputs(result: PooledResult, data: dict, out_dir) -> dict:
+    """fit.json, the forest plot (forest.png) and the clips' tracks with the joint fit
+    (fit.png) of a fit of several clips into ``out_dir``."""
+    os.makedirs(out_dir, exist_ok=True)
+    payload = result.to_json()
+    with open(os.path.join(out_dir, "fit.json"), "w") as f:
+        dump(payload, f, indent=2)
+    plot_forest(result, os.path.join(out_dir, "forest.png"))
+    plot_fit(data, result.clips, os.path.join(out_dir, "fit.png"))
     return payload

@@ -1,0 +1,184 @@
+"""Physics the scene lacks: would air explain residuals that stay above the noise floor?
+
+A scene without ``<option density viscosity>`` is a vacuum: flights are parabolas and a
+fit's residuals can reach the noise floor only if the real ball felt no air. For a light
+ball they often cannot (a 2.7 g ping-pong ball falling 2 m is slowed by a third of g). When
+a fit in such a scene stays above its noise floor, :func:`missing_physics` says, with
+numbers, how far the effects the scene leaves out would move this ball over this track:
+
+- ``air drag``: still air (quadratic drag, eq. (1) of ``estim.model._air``, with the ball's
+  ``drag_coefficient``, plus Stokes drag, eq. (2)) against the vacuum;
+- ``a spinning ball (Magnus, S rad/s backspin)``, only for a stated spin: the same still
+  air with the ball spinning (eq. (3)) against still air without spin, so that the entry
+  isolates what the spin adds.
+
+The size of an effect is the largest distance between the two simulated trajectories over
+``[0, t_span]`` (mm), and in noise levels that distance over the track's noise level. It
+is the size of the effect, not what would remain after refitting: a drag-free fit absorbs
+part of it into e and the release state (biasing them), so ``explains`` (at least
+:data:`EXPLAINS` noise levels) says the effect is large enough to matter, not that it is
+the only cause.
+
+Cost: one closed-form vacuum run and one ODE run (still air; a second run of the same
+compiled program for the spinning ball when a spin is given). The ODE program compiles
+once per process (seconds) and then runs in milliseconds.
+
+Closed form used by the tests: a ball dropped from rest under quadratic drag alone falls
+as ``z(t) = z0 - ln(cosh(t sqrt(g k))) / k`` with ``k = rho C_D A / (2 m)``, A = pi r^2
+(e.g. Taylor, *Classical Mechanics*, sec. 2.4), so that its lag behind the parabola is
+``g t^2 / 2 - ln(cosh(t sqrt(g k))) / k ~ k g^2 t^4 / 12`` for ``t sqrt(g k) << 1``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY
+from ..forward._simulate import simulate
+from ..forward._trajectory import IMPACT
+from ..model._air import Air
+from ..model._params import Params
+from ..model._scene import Scene
+
+__all__ = ["EXPLAINS", "SAMPLES", "format_note", "missing_physics"]
+
+# An effect that moves the ball by at least this many noise levels could explain residuals
+# above the noise floor (the fit's floor allows 1.3 noise levels of rms).
+EXPLAINS = 3.0
+# Sample times over [0, t_span] for the largest deviation.
+SAMPLES = 401
+
+
+def _number(x: float) -> str:
+    """A number as a scene file would write it: 3 significant digits, short exponent
+    (1.204 -> "1.2", 1.81e-5 -> "1.81e-5")."""
+    mantissa, _, exponent = format(float(x), ".3g").partition("e")
+    return mantissa if not exponent else f"{mantissa}e{int(exponent)}"
+
+
+def _short(x: float) -> str:
+    """A size for a sentence: whole numbers from 10 up, 2 significant digits below."""
+    return f"{x:.0f}" if abs(x) >= 10 else f"{x:.2g}"
+
+
+def _backspin(rate: float, velocity: np.ndarray) -> np.ndarray:
+    """Angular velocity of backspin ``rate`` (rad/s; topspin if negative) about the
+    horizontal axis across the horizontal release direction u: omega = rate u x z, which
+    lifts a ball moving along u (+x for a ball released without horizontal speed); the
+    convention of ``estim effects --spin``."""
+    u = np.array([velocity[0], velocity[1], 0.0])
+    norm = np.linalg.norm(u)
+    u = u / norm if norm > 0 else np.array([1.0, 0.0, 0.0])
+    return rate * np.cross(u, np.array([0.0, 0.0, 1.0]))
+
+
+def missing_physics(
+    scene: Scene,
+    params: Params,
+    t_span: float,
+    noise_m: float,
+    ball_label: str,
+    *,
+    density: float = AIR_DENSITY,
+    viscosity: float = AIR_VISCOSITY,
+    spin: float | None = None,
+    samples: int = SAMPLES,
+) -> list[dict]:
+    """How far the air a vacuum scene leaves out would move this ball over this track.
+
+    Args:
+        scene: the scene of the fit. A scene with air already has these effects: the
+            answer is then ``[]``.
+        params: one ball, unbatched (batch shape ``()``), as fitted; its mass is needed
+            (taken from the scene's ball ``ball_label`` when ``params.mass`` is ``None``).
+            Its drag coefficient (0.47 by default) sets the quadratic drag; its spin is
+            ignored (spin has no effect without air; see ``spin``).
+        t_span: the time the track covers after the release (s), > 0.
+        noise_m: the track's noise level (m), > 0.
+        ball_label: the ball's name, for the entries and the notes.
+        density: air density rho (kg/m^3) of the still-air run and the advice; default
+            dry air at 20 C (``AIR_DENSITY``).
+        viscosity: dynamic viscosity eta (Pa s) of the Stokes drag; default
+            ``AIR_VISCOSITY``; 0 leaves quadratic drag alone.
+        spin: a backspin rate (rad/s; topspin if negative) for a Magnus entry, about the
+            horizontal axis across the release direction; ``None`` (default): no Magnus
+            entry and a single air run.
+        samples: sample times over ``[0, t_span]`` for the largest deviation.
+
+    Returns:
+        One dict per effect, air drag first: ``effect`` (``"air drag"`` or
+        ``"a spinning ball (Magnus, 50 rad/s backspin)"``), ``ball`` (``ball_label``),
+        ``mass_kg``, ``t_span_s``, ``noise_mm``, ``max_deviation_mm`` (largest distance
+        between the trajectories with and without the effect over the track's first
+        flight: up to the first impact in the vacuum, or ``t_span``),
+        ``noise_levels`` (that distance over ``noise_m``), ``explains``
+        (``noise_levels >= EXPLAINS``), ``air`` (the density and viscosity of the run) and
+        ``advice`` (what to add to the scene and which parameter to fit). ``[]`` for a
+        scene with air.
+    """
+    if scene.air is not None:
+        return []
+    if not isinstance(params, Params):
+        raise TypeError(f"params must be an estim.Params, got {type(params).__name__}")
+    if params.batch_shape != ():
+        raise ValueError(f"params must be one ball (batch shape ()), got batch shape {params.batch_shape}")
+    for name, value, positive in (("t_span", t_span, True), ("noise_m", noise_m, True),
+                                  ("density", density, False), ("viscosity", viscosity, False)):
+        v = float(value)
+        if not (math.isfinite(v) and (v > 0 if positive else v >= 0)):
+            raise ValueError(f"{name} must be finite and {'> 0' if positive else '>= 0'}, got {value!r}")
+    if density == 0 and viscosity == 0:
+        raise ValueError("density and viscosity are both 0: that air exerts no force")
+    if spin is not None and not math.isfinite(float(spin)):
+        raise ValueError(f"spin must be a finite rate (rad/s) or None, got {spin!r}")
+    mass = params.mass if params.mass is not None else scene.ball(ball_label).mass
+    t_span, noise_m = float(t_span), float(noise_m)
+
+    ball = dataclasses.replace(params, mass=jnp.asarray(mass, jnp.float64), spin=jnp.zeros(3))
+    ts = jnp.linspace(0.0, t_span, int(samples))
+    run = simulate(scene, ball, t_span, ts=ts)  # closed form
+    vacuum = np.asarray(run.position)  # (times, 3)
+    # Up to the first impact: after it the runs drift apart in phase (a bounce earlier or
+    # later), and their distance would measure that drift, not the force.
+    kind, count = np.asarray(run.events.kind), int(run.events.count)
+    impacts = np.asarray(run.events.t)[:count][kind[:count] == IMPACT]
+    flight = np.asarray(ts) <= (impacts[0] if impacts.size else t_span)
+
+    air_scene = scene.with_air(Air(density, viscosity))
+    # The spinning ball is a second call of the same compiled program (one ball, the same
+    # air; only the value of its spin differs): no second compilation.
+    balls = [ball] if spin is None else [ball, dataclasses.replace(
+        ball, spin=jnp.asarray(_backspin(float(spin), np.asarray(ball.velocity))))]
+    in_air = [np.asarray(simulate(air_scene, b, t_span, ts=ts).position) for b in balls]
+
+    settings = {"density": float(density), "viscosity": float(viscosity)}
+    option = f'<option density="{_number(density)}" viscosity="{_number(viscosity)}"/>'
+
+    def entry(effect: str, a: np.ndarray, b: np.ndarray, advice: str) -> dict:
+        deviation = float(np.max(np.linalg.norm(a - b, axis=-1)[flight]))
+        levels = deviation / noise_m
+        return {"effect": effect, "ball": ball_label, "mass_kg": float(mass), "t_span_s": t_span,
+                "noise_mm": noise_m * 1e3, "max_deviation_mm": deviation * 1e3,
+                "noise_levels": levels, "explains": bool(levels >= EXPLAINS), "air": settings,
+                "advice": advice}
+
+    out = [entry("air drag", in_air[0], vacuum,
+                 f"add {option} to the scene and fit drag_coefficient (--also drag_coefficient)")]
+    if spin is not None:
+        out.append(entry(f"a spinning ball (Magnus, {_short(float(spin))} rad/s backspin)", in_air[1], in_air[0],
+                         f"add {option} to the scene and fit the spin (--also spin)"))
+    return out
+
+
+def format_note(entry: dict, mass_kg: float) -> str:
+    """The one-line note of an entry of :func:`missing_physics`, e.g. ``air drag would move
+    this 2.7 g ball by 41 mm in its first flight, 41 noise levels: add <option density="1.2"
+    viscosity="1.81e-5"/> to the scene and fit drag_coefficient (--also drag_coefficient)``.
+    """
+    return (f"{entry['effect']} would move this {_number(mass_kg * 1e3)} g ball by "
+            f"{_short(entry['max_deviation_mm'])} mm in its first flight, "
+            f"{_short(entry['noise_levels'])} noise levels: {entry['advice']}")

@@ -1,0 +1,121 @@
+"""Physics the scene lacks (``estim.fitting._missing_physics``): air drag against an
+independent closed form, and the advice for light and heavy balls.
+
+Every call here runs one ball with the default sample times on the drop scene, so the
+module compiles one closed-form and one ODE program (a few seconds, in the first test).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import estim
+from estim.fitting._missing_physics import EXPLAINS, format_note, missing_physics
+
+DROP_XML = ROOT / "data" / "scenes" / "drop.xml"
+G = 9.81
+C_D = 0.47
+
+
+@pytest.fixture(scope="module")
+def drop():
+    return estim.load_scene(DROP_XML)
+
+
+def _ball(scene, z0=0.5, radius=None, mass=None):
+    """The scene's ping-pong ball released from rest at height z0 (centre), or a ball of
+    the given radius and mass there."""
+    p = estim.Params.for_ball(scene, "pingpong", e=0.85, mu_t=0.9, position=(0.0, 0.0, z0))
+    if radius is None:
+        return p
+    return estim.Params(p.e, p.mu_t, radius, p.position, p.velocity, mass=mass)
+
+
+def test_drag_lag_of_a_dropped_ball_is_the_closed_form(drop):
+    """Dropped from rest, under quadratic drag alone (viscosity 0), the ball falls as
+    z(t) = z0 - ln(cosh(t sqrt(g k))) / k, k = rho C_D pi r^2 / (2 m) (Taylor, Classical
+    Mechanics, sec. 2.4). Before the first bounce its lag behind the parabola grows with
+    t, so the largest deviation over [0, T] is the lag at T."""
+    z0, t_span, rho = 2.0, 0.5, 1.204  # the vacuum fall to the table lasts 0.63 s
+    ball = _ball(drop, z0)
+    r, m = float(ball.radius), float(ball.mass)
+    k = rho * C_D * math.pi * r**2 / (2 * m)
+    lag = G * t_span**2 / 2 - math.log(math.cosh(t_span * math.sqrt(G * k))) / k
+    # 61 mm for 2.7 g; the first terms of its series in x^2 = g k T^2 (ln cosh x = x^2/2 -
+    # x^4/12 + x^6/45 - 17 x^8/2520 + ...) agree
+    x2 = G * k * t_span**2
+    assert lag == pytest.approx((x2**2 / 12 - x2**3 / 45 + 17 * x2**4 / 2520) / k, rel=2e-3)
+
+    (entry,) = missing_physics(drop, ball, t_span, 1e-3, "pingpong", density=rho, viscosity=0.0)
+    assert entry["effect"] == "air drag"
+    assert entry["max_deviation_mm"] == pytest.approx(lag * 1e3, rel=1e-6)
+    assert entry["noise_levels"] == pytest.approx(lag / 1e-3, rel=1e-6)
+    assert entry["explains"] is True
+    assert entry["air"] == {"density": rho, "viscosity": 0.0}
+    assert 'viscosity="0"' in entry["advice"]
+
+
+def test_a_scene_with_air_has_the_effect_already(drop):
+    air = drop.with_air(estim.Air(1.204, 1.81e-5))
+    assert missing_physics(air, _ball(drop), 1.0, 1e-3, "pingpong") == []
+    assert missing_physics(air, _ball(drop), 1.0, 1e-3, "pingpong", spin=50.0) == []
+
+
+def test_a_ping_pong_ball_over_one_second_needs_air(drop):
+    ball = _ball(drop)
+    (entry,) = missing_physics(drop, ball, 1.0, 1e-3, "pingpong")
+    # falling 0.48 m to the table (its first flight) lags about k g^2 t^4 / 12 ~ 10 mm
+    assert 5 < entry["max_deviation_mm"] < 20
+    assert entry["noise_levels"] >= EXPLAINS and entry["explains"] is True
+    assert entry["ball"] == "pingpong" and entry["mass_kg"] == pytest.approx(0.0027)
+    assert entry["advice"] == ('add <option density="1.2" viscosity="1.81e-5"/> to the scene '
+                               "and fit drag_coefficient (--also drag_coefficient)")
+    note = format_note(entry, 0.0027)
+    assert note.startswith("air drag would move this 2.7 g ball by ")
+    assert " mm in its first flight, " in note and " noise levels: add " in note
+    assert note.endswith("(--also drag_coefficient)")
+    # the mass comes from the scene's ball when the parameters have none
+    bare = estim.Params(ball.e, ball.mu_t, ball.radius, ball.position, ball.velocity)
+    (same,) = missing_physics(drop, bare, 1.0, 1e-3, "pingpong")
+    assert same["max_deviation_mm"] == pytest.approx(entry["max_deviation_mm"], rel=1e-12)
+
+
+def test_a_bocce_ball_over_a_short_track_needs_none(drop):
+    """0.92 kg, r = 0.08 m: k = 0.0062 /m, a lag of k g^2 t^4 / 12 ~ 0.2 mm at 0.25 s."""
+    ball = _ball(drop, radius=0.08, mass=0.92)
+    (entry,) = missing_physics(drop, ball, 0.25, 1e-3, "bocce")
+    k = 1.204 * C_D * math.pi * 0.08**2 / (2 * 0.92)
+    assert entry["max_deviation_mm"] == pytest.approx(k * G**2 * 0.25**4 / 12 * 1e3, rel=0.02)  # + Stokes
+    assert entry["noise_levels"] < 1 and entry["explains"] is False
+    assert format_note(entry, 0.92).startswith("air drag would move this 920 g ball by 0.19 mm in its first flight, 0.19 noise levels")
+
+
+def test_a_stated_spin_adds_a_magnus_entry(drop):
+    """Backspin about the axis across the release direction (+x for a drop): omega = s x x z
+    = -s y, and omega x w for a falling ball (w = -v z) points along +x."""
+    drag, magnus = missing_physics(drop, _ball(drop), 1.0, 1e-3, "pingpong", spin=50.0)
+    assert drag["effect"] == "air drag"
+    assert magnus["effect"] == "a spinning ball (Magnus, 50 rad/s backspin)"
+    assert magnus["explains"] is True and magnus["max_deviation_mm"] > 3
+    assert magnus["advice"].endswith("fit the spin (--also spin)")
+    assert format_note(magnus, 0.0027).startswith("a spinning ball (Magnus, 50 rad/s backspin) would move this 2.7 g ball")
+    # the same drag entry as without a spin
+    (alone,) = missing_physics(drop, _ball(drop), 1.0, 1e-3, "pingpong")
+    assert drag["max_deviation_mm"] == pytest.approx(alone["max_deviation_mm"], rel=1e-12)
+
+
+def test_bad_input(drop):
+    ball = _ball(drop)
+    batch = estim.Params(np.full(2, 0.8), 0.9, 0.02, np.zeros((2, 3)) + [0, 0, 0.5], np.zeros(3), mass=0.0027)
+    with pytest.raises(ValueError, match="one ball"):
+        missing_physics(drop, batch, 1.0, 1e-3, "pingpong")
+    for kwargs in ({"noise_m": 0.0}, {"noise_m": float("nan")}, {"t_span": -1.0}):
+        args = {"t_span": 1.0, "noise_m": 1e-3} | kwargs
+        with pytest.raises(ValueError, match=next(iter(kwargs))):
+            missing_physics(drop, ball, args["t_span"], args["noise_m"], "pingpong")
+    with pytest.raises(ValueError, match="no force"):
+        missing_physics(drop, ball, 1.0, 1e-3, "pingpong", density=0.0, viscosity=0.0)

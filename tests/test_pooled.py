@@ -1,0 +1,244 @@
+"""Several clips fitted together (``estim.fitting._pooled``): the Schur-complement step
+against a dense solve, recovery of a known shared e, sharded against unsharded, the command
+line and its refusals, the forest plot, and the calibration of the shared standard errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import estim
+from estim.app._cli import main
+from estim.fitting._pooled import Clip, _Arrow, _arrow_step, fit_clips
+
+ROOT = Path(__file__).resolve().parents[1]
+DROP = str(ROOT / "data" / "scenes" / "drop.xml")
+DROP_AIR = str(ROOT / "data" / "scenes" / "drop_air.xml")
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def drops(scene, e, n, seed, *, drag_coefficient=0.5, noise=1e-3, rate=100.0, span=1.2, heights=(0.5, 1.0),
+          group=None):
+    """``n`` clips of the scene's ping-pong ball dropped from ``heights`` with a small
+    sideways speed (known per clip), ``span`` seconds (one length: one compile) sampled at
+    ``rate`` with Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    clips, truth = [], []
+    for k in range(n):
+        z0, vx = rng.uniform(*heights), rng.uniform(-0.3, 0.3)
+        p = estim.Params.for_ball(scene, "pingpong", e=e, mu_t=0.8, position=(0.0, 0.0, z0),
+                                  velocity=(vx, 0.0, 0.0), drag_coefficient=drag_coefficient)
+        ts = np.arange(round(span * rate)) / rate
+        pos = np.array(estim.simulate(scene, p, span, ts=ts).position) + rng.normal(0.0, noise, (len(ts), 3))
+        pos[:, 1] = np.nan
+        label = f"c{k}" if group is None else f"{group}c{k}"
+        clips.append(Clip(label=label, ball="pingpong", t=ts, position=pos, fixed={"y0": 0.0}, group=group))
+        truth.append({"z0": z0, "vx0": vx})
+    return clips, truth
+
+
+def test_arrow_step_is_the_dense_levenberg_marquardt_step():
+    """The Schur-complement step equals the damped Gauss-Newton step of the whole problem
+    solved densely: unknowns (a, b_1, ..., b_U), Jacobian with the arrow's blocks."""
+    rng = np.random.default_rng(0)
+    U, m, P, shared, lam = 4, 9, 4, (1, 3), 0.1
+    local = tuple(k for k in range(P) if k not in shared)
+    J, u = rng.normal(size=(U, m, P)), rng.normal(size=(U, m))
+    w = rng.uniform(0.3, 1.0, size=(U, m))
+    theta = np.tile(rng.normal(size=P), (U, 1))
+    state = _Arrow(theta=jnp.asarray(theta), best_theta=jnp.asarray(theta), best_value=jnp.array([jnp.inf]),
+                   damping=jnp.array([lam * 3.0]), hessian=jnp.zeros((U, P, P)), gradient=jnp.zeros((U, P)))
+    group, real = jnp.ones((U, 1)), jnp.ones(U, bool)
+    new = _arrow_step(shared, local, group, real, state, jnp.asarray(J), jnp.asarray(u), jnp.asarray(w),
+                      jnp.ones(U))
+    # The dense system: columns [a (2), b_1 (2), ..., b_U (2)].
+    k, p = len(shared), len(local)
+    big = np.zeros((U * m, k + U * p))
+    for i in range(U):
+        big[i * m:(i + 1) * m, :k] = J[i][:, shared]
+        big[i * m:(i + 1) * m, k + i * p:k + (i + 1) * p] = J[i][:, local]
+    sw = np.sqrt(w.reshape(-1))
+    H = (big * sw[:, None]).T @ (big * sw[:, None])
+    g = (big * sw[:, None]).T @ (u.reshape(-1) * sw)
+    step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
+    got = np.asarray(new.theta) - theta
+    np.testing.assert_allclose(got[:, shared], np.tile(step[:k], (U, 1)), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(got[:, local], step[k:].reshape(U, p), rtol=1e-10, atol=1e-12)
+
+
+def test_shared_e_recovered_from_clips():
+    """Five drops of a ball with e = 0.8 (vacuum, 1 mm noise): the shared e is within three
+    standard errors of the truth, every clip's release height within 3 mm of its own, and
+    the clips agree with each other (heterogeneity Q near its degrees of freedom)."""
+    scene = estim.load_scene(DROP)
+    clips, truth = drops(scene, 0.8, 5, 1)
+    res = fit_clips(scene, clips, shared=("e",), restarts=0)
+    sf = res.shared["pingpong"]
+    assert sf.stderr["e"] > 0 and abs(sf.values["e"] - 0.8) < 3 * sf.stderr["e"], (sf.values, sf.stderr)
+    assert sf.stderr["e"] < 1e-3
+    for c, t in zip(clips, truth, strict=True):
+        bf = res.clips.balls[c.label]
+        assert bf.values["e"] == sf.values["e"]
+        assert abs(bf.values["z0"] - t["z0"]) < 3e-3, (c.label, bf.values["z0"], t["z0"])
+        assert bf.at_noise_floor
+    q, dof = sf.heterogeneity["e"]
+    assert dof == 4 and q < 20 and not sf.disagree
+    payload = res.to_json()
+    assert payload["shared"]["e"] == sf.values["e"] and payload["shared"]["stderr"]["e"] == sf.stderr["e"]
+    assert set(payload["clips"]) == {c.label for c in clips}
+
+
+def test_a_clip_that_disagrees_is_named():
+    """Four clips of e = 0.8 and one of e = 0.6: the odd one is named, its own e read as 0.6,
+    the clips' heterogeneity far above its degrees of freedom, and the robust loss keeps
+    the shared e at the four clips' 0.8."""
+    scene = estim.load_scene(DROP)
+    clips, _ = drops(scene, 0.8, 4, 2)
+    odd, _ = drops(scene, 0.6, 1, 3)
+    clips.append(dataclasses.replace(odd[0], label="odd"))
+    res = fit_clips(scene, clips, shared=("e",), restarts=0)
+    sf = res.shared["pingpong"]
+    assert [d[0] for d in sf.disagree] == ["odd"], sf.disagree
+    assert abs(sf.per_clip["e"]["odd"][0] - 0.6) < 0.005
+    assert sf.heterogeneity["e"][0] > 100 * sf.heterogeneity["e"][1]
+    assert abs(sf.values["e"] - 0.8) < 1e-3
+    assert any("shared value" in n for n in res.clips.balls["odd"].notes)
+
+
+SHARDED = textwrap.dedent("""
+    import json, sys
+    import jax
+    sys.path.insert(0, {tests!r})
+    import estim
+    from test_pooled import drops
+    from estim.fitting._pooled import fit_clips
+    assert len(jax.devices()) == 4, jax.devices()
+    scene = estim.load_scene({drop!r})
+    clips, _ = drops(scene, 0.8, 6, 4)  # 6 clips: padded to 8 on 4 devices
+    one = fit_clips(scene, clips, shared=("e",), devices=jax.devices()[:1], restarts=0)
+    four = fit_clips(scene, clips, shared=("e",), restarts=0)
+    print(json.dumps([one.to_json(), four.to_json()]))
+""")
+
+
+def test_sharded_over_four_devices_matches_one():
+    """The clip axis split over 4 CPU devices gives the unsharded fit to 1e-10."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    code = SHARDED.format(tests=str(ROOT / "tests"), drop=DROP)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    one, four = json.loads(out.stdout.strip().splitlines()[-1])
+    assert abs(one["shared"]["e"] - four["shared"]["e"]) < 1e-10
+    assert abs(one["shared"]["stderr"]["e"] - four["shared"]["stderr"]["e"]) < 1e-10
+    for label, clip in one["clips"].items():
+        for name in ("x0", "z0", "vx0", "mu_t"):
+            assert abs(clip[name] - four["clips"][label][name]) < 1e-10, (label, name)
+
+
+def _write_csv(path, clip):
+    with open(path, "w") as f:
+        f.write("t,ball,x,z\n")
+        for t, p in zip(clip.t, clip.position, strict=True):
+            f.write(f"{t:.4f},{clip.ball},{p[0]:.6f},{p[2]:.6f}\n")
+
+
+def test_cli_fits_files_together(tmp_path, capsys):
+    """``estim fit A B C --shared e --json --out``: the shared e near the truth, per clip
+    what a single fit gives, fit.json and the forest plot written."""
+    scene = estim.load_scene(DROP)
+    clips, _ = drops(scene, 0.8, 3, 5)
+    paths = []
+    for c in clips:
+        paths.append(str(tmp_path / f"{c.label}.csv"))
+        _write_csv(paths[-1], c)
+    out = tmp_path / "out"
+    code = main(["fit", *paths, "--scene", DROP, "--shared", "e", "--json", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    payload = json.loads(captured.out)
+    assert abs(payload["shared"]["e"] - 0.8) < 3 * payload["shared"]["stderr"]["e"] + 1e-4
+    assert set(payload["clips"]) == {"c0", "c1", "c2"}
+    for clip in payload["clips"].values():
+        assert {"e", "mu_t", "x0", "z0", "vx0", "stderr", "rms_m", "noise_m", "source"} <= set(clip)
+    assert json.loads((out / "fit.json").read_text()) == payload
+    for name in ("forest.png", "fit.png"):
+        assert (out / name).read_bytes().startswith(PNG)
+
+
+def _fails(argv, capsys, *words):
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, (argv, err)
+    for w in words:
+        assert w.lower() in err.lower(), (w, err)
+
+
+def test_cli_refuses_what_it_cannot_share(tmp_path, capsys):
+    scene = estim.load_scene(DROP)
+    clips, _ = drops(scene, 0.8, 2, 6)
+    a, b = str(tmp_path / "a.csv"), str(tmp_path / "b.csv")
+    _write_csv(a, clips[0])
+    _write_csv(b, clips[1])
+    _fails(["fit", a, b, "--scene", DROP], capsys, "2 files", "--shared")
+    _fails(["fit", a, "--scene", DROP, "--shared", "e"], capsys, "only one clip")
+    _fails(["fit", a, a, "--scene", DROP, "--shared", "e"], capsys, "given twice")
+    _fails(["fit", a, b, "--scene", DROP, "--shared", "t0"], capsys, "t0")
+    _fails(["fit", a, b, "--scene", DROP, "--shared", "drag_coefficient"], capsys, "air")
+    _fails(["fit", a, "--scene", DROP, "--devices", "2"], capsys, "--shared")
+    with pytest.raises(SystemExit):
+        main(["fit", a, b, "--scene", DROP, "--shared", "restitution"])
+
+
+def test_forest_plot_draws_every_clip(tmp_path):
+    """One panel per shared parameter; per clip its own estimate and its one-by-one fit."""
+    from estim.show._forest import plot_forest
+
+    scene = estim.load_scene(DROP)
+    clips, _ = drops(scene, 0.8, 3, 7)
+    res = fit_clips(scene, clips, shared=("e",), restarts=0)
+    fig = plot_forest(res, tmp_path / "forest.png")
+    (ax,) = fig.axes
+    assert len(ax.containers) == 2 * len(clips)  # an error bar per clip and per one-by-one fit
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["c2", "c1", "c0"]
+    assert (tmp_path / "forest.png").read_bytes().startswith(PNG)
+
+
+@pytest.mark.slow
+def test_shared_standard_errors_are_calibrated():
+    """20 repeats of 30 clips in air with known shared e = 0.85 and C_d = 0.5 (per-clip
+    release states from 0.3-0.6 m, 0.7 s at 50 Hz, 1 mm noise), all in one program (a group
+    per repeat): the truth lies inside the 95% interval in 17 to 20 of the 20 repeats, for
+    both."""
+    scene = estim.load_scene(DROP_AIR)
+    clips = []
+    for r in range(20):
+        clips += drops(scene, 0.85, 30, 100 + r, rate=50.0, span=0.7, heights=(0.3, 0.6), group=f"r{r}")[0]
+    res = fit_clips(scene, clips, shared=("e", "drag_coefficient"), restarts=0, steps=15, joint_steps=20,
+                    per_clip=False)
+    assert len(res.shared) == 20
+    for name, true in (("e", 0.85), ("drag_coefficient", 0.5)):
+        inside = sum(abs(sf.values[name] - true) < 1.96 * sf.stderr[name] for sf in res.shared.values())
+        assert 17 <= inside <= 20, (name, inside, [(sf.values[name], sf.stderr[name]) for sf in res.shared.values()])
+
+
+def test_pixel_scale_recovers_a_wrong_scale():
+    """A track whose metres came from a scale 5% too small (positions shrunk by 1/1.05 about
+    the surface under the first sample): fitting pixel_scale reads 1.05 back, and e with it."""
+    scene = estim.load_scene(DROP)
+    (clip,), (truth,) = drops(scene, 0.8, 1, 8)
+    anchor = np.array([clip.position[0, 0], 0.0, 0.0])  # the drop scene's table top is z = 0
+    shrunk = anchor + (clip.position - anchor) / 1.05
+    res = estim.fit(scene, {"c": (clip.t, shrunk)}, free=("e", "mu_t", "vx0", "x0", "z0", "pixel_scale"),
+                    fixed={"c": {"y0": 0.0}}, balls={"c": "pingpong"}, anchors={"c": tuple(anchor)})
+    bf = res.balls["c"]
+    assert abs(bf.values["pixel_scale"] - 1.05) < max(3 * bf.stderr["pixel_scale"], 2e-3), bf.values
+    assert abs(bf.values["e"] - 0.8) < 3e-3 and abs(bf.values["z0"] - truth["z0"]) < 5e-3
