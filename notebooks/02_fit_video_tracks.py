@@ -457,7 +457,7 @@ def _(FAST, OUT, STAIRS, estim, mo, result, scene, time, tracks):
 def _(DT, HAVE_REAL, OUT, REAL, ROOT, estim, mo, real_summary, time):
     # All 15 drops together, in still air (data/scenes/drop_air.xml): one e and one drag
     # coefficient shared by every clip, each clip with its own release state and its own
-    # pixel scale factor (`estim fit tracked-*.txt --pixels --frame-interval 0.01 --scene
+    # pixel scale, read from its bounce-to-bounce flights (`estim fit tracked-*.txt --pixels --frame-interval 0.01 --scene
     # data/scenes/drop_air.xml --ball pingpong --shared e drag_coefficient`).
     def _pooled():
         _files = sorted((REAL / "table").glob("tracked-*.txt"), key=lambda p: int(p.stem.split("-")[1]))
@@ -482,7 +482,8 @@ def _(DT, HAVE_REAL, OUT, REAL, ROOT, estim, mo, real_summary, time):
 
     The 15 drops are one ball on one table. Fitted together in still air (the scene
     `drop_air.xml`), with e and the drag coefficient shared by every clip and each clip
-    keeping its own release state and pixel scale factor, they read
+    keeping its own release state and pixel scale (read from its bounce-to-bounce flights,
+    where drag bends the track least), they read
     **e = {_sf.values['e']:.4f} +- {_sf.stderr['e']:.4f}** and
     **C_D = {_sf.values['drag_coefficient']:.3f} +- {_sf.stderr['drag_coefficient']:.3f}**
     ({_s:.0f} s). One by one and without drag the whole tracks read e = {_e_alone:.3f}: drag
@@ -505,7 +506,7 @@ def _(DT, HAVE_REAL, OUT, REAL, ROOT, estim, mo, real_summary, time):
         return _summary, _view
 
     pooled_summary, _view = _pooled() if HAVE_REAL else (None, mo.md("*Skipped: no real data.*"))
-    _view
+    mo.vstack([_view])
     return (pooled_summary,)
 
 

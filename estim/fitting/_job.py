@@ -16,10 +16,6 @@ from ._pooled import Clip, fit_clips
 
 # A drop filmed from the side starts with an unknown vertical speed.
 PIXEL_FREE = ("e", "mu_t", "vx0", "vz0", "x0", "z0")
-# Clips fitted together also fit each clip's scale (a factor on the scale read from its
-# flights' curvature, which drag biases): the shared physics fixes it better than any one
-# clip's parabolas.
-POOLED_PIXEL_FREE = PIXEL_FREE + ("pixel_scale",)
 
 
 def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
@@ -44,7 +40,10 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
     upward plane. Without ``metres_per_pixel`` the scale comes from gravity: each flight is
     a parabola ``b(t) = b_0 + v t + (g / 2 s) t^2`` in the image, so its curvature ``c``
     (px/s^2) gives ``s = g / (2 c)`` (:func:`estimate_pixel_scale`; it scales with
-    ``frame_interval**2``). ``b_s`` lies one ball radius below the row where consecutive
+    ``frame_interval**2``). In a scene with air the scale comes from the flights observed
+    from bounce to bounce only, each fitted with a drag term (``drag=True,
+    complete_only=True``): drag bends the fall from the hand most, and that flight alone
+    read the real drops' scale 13% high. ``b_s`` lies one ball radius below the row where consecutive
     flight parabolas meet (the ball centre at contact; :func:`estimate_surface_row`).
     Frames before the release (the ball still in the hand) are skipped, the release time
     ``t0`` is held at the first fitted sample, and :func:`fit` estimates ``e``, ``mu_t``,
@@ -122,7 +121,12 @@ def read_pixel_clip(path, scene: Scene, *, ball: str, frame_interval: float,
     spec = scene.ball(ball)
     track = read_pixel_track(path, frame_interval=frame_interval, ball=ball)
     if metres_per_pixel is None:
-        scale = estimate_pixel_scale(track, frame_interval)
+        # In air the flights are not parabolas, and the fall from the hand (the fastest,
+        # and where the real drops' tracks are least like the model) biases the scale most:
+        # there it comes from bounce-to-bounce flights with a drag term
+        # (docs/pages/fitting.md, "All drops together").
+        air = scene.air is not None
+        scale = estimate_pixel_scale(track, frame_interval, drag=air, complete_only=air)
         metres_per_pixel = scale.metres_per_pixel
         if say:
             say(f"scale from gravity: {metres_per_pixel * 1e3:.4f} +- {scale.stderr * 1e3:.4f} mm/px")
@@ -210,6 +214,6 @@ def fit_files(paths, scene: Scene | str, *, shared, pixels: bool = False, ball: 
     if alone:
         raise ValueError(f"ball(s) {alone} appear in only one clip: shared parameters need a ball "
                          "in at least two clips")
-    free = options.pop("free", POOLED_PIXEL_FREE if pixels else DEFAULT_FREE)
+    free = options.pop("free", PIXEL_FREE if pixels else DEFAULT_FREE)
     result = fit_clips(scene, clips, shared=shared, free=free, progress=say, **options)
     return result, {c.label: (c.t, c.position) for c in clips}
