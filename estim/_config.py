@@ -157,8 +157,13 @@ FIT_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
 # optimisation. Chosen when its planning loop alone was a kernel (3 balls compiled in 4.4 s
 # instead of 5.2 s, ran as fast); as one loop over balls, levels 1 and 3 are within noise
 # of each other (one CPU, two runs each: compile 2.4-2.8 s, 3 balls 145-157 us, 10,000
-# balls 151-174 ms). The ODE path keeps level 3: at level 1 its steps run 20% slower.
+# balls 151-174 ms).
 CLOSED_FORM_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 1),)
+# The ODE path (estim.forward._ode), one step loop per ball: XLA's defaults. Its steps are
+# arithmetic on a few vectors, which the fusion emitters compile into faster code: 3 balls
+# in still air ran in 0.63 ms with them, 1.36 ms without, and compiled in the same 4.0 s
+# (2-core reference machine, jax 0.10.2); at optimisation level 0, 2.2 ms in 3.0 s.
+ODE_COMPILE = ()
 
 
 @functools.cache

@@ -286,3 +286,13 @@ def test_bench_speed_json(capsys):
     assert out["machine"]["small_loops_as_kernels"] is True
     assert out["machine"]["sync_dispatch"] is True  # likewise estim's dispatch (estim._config)
     np.testing.assert_allclose(list(out["gradient"].values()), GOLF_GRAD, atol=1e-7)
+    # The air path beside a plain diffrax event loop: the same contacts as a tight reference,
+    # both within 1e-9 m of it, and the same gradient (the loop's reverse mode, estim's
+    # forward mode: two derivatives of one model that must agree).
+    air = out["air"]
+    assert air["events"] == air["loop_events"] == air["reference_events"] == [10, 6, 6]
+    assert air["final_position_error"] < 1e-9 and air["loop_final_position_error"] < 1e-9
+    np.testing.assert_allclose(air["gradient"], air["loop_gradient"], rtol=1e-6)
+    assert air["shot_events"] == 1 and air["shot_final_position_error"] < 1e-9
+    assert set(air["targets"]) == {"forward_ratio", "final_position_error", "gradient_ratio", "shot_forward_us",
+                                   "first_call_s"}

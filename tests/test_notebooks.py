@@ -128,15 +128,15 @@ def test_04_accuracy_cost(tmp_path):
     assert s["vacuum_events"] == [9, 6, 4]
     assert s["closed_form_gradient"] == pytest.approx([0.19213914, 6.81524982, 2.17816532], abs=5e-8)
     assert s["vacuum_max_error"] < 1e-9
-    # (b) Still air: the default is within a micrometre of the tight reference, with its
-    # events; the step count never grows as rtol loosens, and stops falling at loose rtol.
+    # (b) Still air: the default is within 1e-9 m of the tight reference, with its events;
+    # tight tolerances take more steps, and at loose ones the steps around the contacts
+    # are all that is left (the count stops falling).
     default, ref = s["air_default"], s["air_reference"]
-    assert default["final_position_error"] < 1e-6 and default["event_time_error"] < 1e-6
+    assert default["final_position_error"] < 1e-9 and default["event_time_error"] < 1e-9
     assert default["events"] == ref["events"] and ref["complete"]
     steps = s["tsit5_steps_by_rtol"]  # loosest first
-    assert list(steps.values()) == sorted(steps.values())
-    assert steps["1e-03"] == steps["1e-04"]
-    assert s["steps_plateau_rtol"] <= 1e-4
+    assert steps["1e-11"] > 2 * steps["1e-03"]
+    assert 1e-9 <= s["steps_plateau_rtol"] <= 1e-4
     slack_steps = list(s["slack_steps"].values())  # loosest slack first
     assert slack_steps == sorted(slack_steps) and slack_steps[0] < slack_steps[-1]
 

@@ -20,6 +20,7 @@ import numpy as np
 from .. import _config
 from .._json import dump
 from ..fitting._job import fit_csv, fit_files, fit_pixels
+from ..forward import _ode
 from ..forward._dispatch import NATIVE, path
 from ..forward._ode import OdeSettings
 from ..forward._simulate import simulate, solve_closed_form, solve_ode
@@ -29,9 +30,11 @@ from ..model._scene import load_scene
 from ..tracks._csv import write_tracks_csv
 from ..tracks._synthetic import synthesize_tracks
 from ._demo import DEMO_TRACKS, SEED, default_scene_path, seed_params
+from ._event_loop import event_loop
 
 __all__ = ["run_speed", "format_speed", "run_fit_bench", "format_fit_bench", "TARGETS", "REFERENCE",
-           "run_accuracy", "format_accuracy", "plot_accuracy", "write_accuracy"]
+           "run_accuracy", "format_accuracy", "plot_accuracy", "write_accuracy", "run_air_speed",
+           "format_air_speed", "AIR_TARGETS"]
 
 # Targets of the issue; "le" = at most, "lt" = below, "ge" = at least.
 TARGETS = {
@@ -135,9 +138,10 @@ def _cpus_used() -> int:
 
 
 def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None = None,
-              seed: int = 0, cpus: int | None = None) -> dict:
+              seed: int = 0, cpus: int | None = None, air: bool = True) -> dict:
     """Measure the figures of ``estim bench speed`` and return them as a dict (on ``cpus``
-    CPUs if given: ``restrict_cpus``)."""
+    CPUs if given: ``restrict_cpus``); with ``air``, also the air path against a plain
+    diffrax event loop (:func:`run_air_speed`, under the key ``"air"``)."""
     if cpus is not None:
         restrict_cpus(cpus)
     scene_path = scene_path or default_scene_path()
@@ -257,6 +261,8 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         # built at install, not switched off with ESTIM_NATIVE=0, JAX's backend is the CPU.
         "native": path(scene) == NATIVE,
     }
+    if air:
+        result["air"] = run_air_speed(repeats=min(repeats, 100))
     return result
 
 
@@ -297,7 +303,168 @@ def format_speed(r: dict) -> str:
         f"programs run on the calling thread: {'yes' if r['machine'].get('sync_dispatch') else 'NO'}; "
         f"native kernels: {'yes' if r['machine'].get('native') else 'NO (the JAX planner)'}",
     ]
+    if "air" in r:
+        lines += ["", format_air_speed(r["air"])]
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ the air path, side by side
+
+# Targets of the air-path issue: estim at least as fast as the plain diffrax loop in the same
+# process (forward, 3 balls; its jacfwd against the loop's jax.grad) and within 1e-9 m of
+# the reference; a table-tennis shot in air; the first call of the air path.
+AIR_TARGETS = {
+    "forward_ratio": ("le", 1.0),
+    "final_position_error": ("le", 1e-9),
+    "gradient_ratio": ("le", 1.0),
+    "shot_forward_us": ("le", 100.0),
+    "first_call_s": ("le", 2.0),
+}
+# A table-tennis shot over the table of drop_air.xml: 40 mm, 2.7 g, 4.5 m/s with topspin,
+# one bounce, 0.42 s.
+SHOT = {"scene": "drop_air.xml", "ball": "pingpong", "position": (-0.9, 0.0, 0.25), "velocity": (4.5, 0.0, 0.6),
+        "spin": (0.0, 120.0, 0.0), "e": 0.88, "mu_t": 0.75, "t_end": 0.42}
+_AIR_FIRST_CALL = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import jax
+import estim
+from estim.app._demo import seed_params
+scene = estim.load_scene(sys.argv[1])
+params = seed_params(scene)
+t1 = time.perf_counter()
+jax.block_until_ready(estim.simulate(scene, params, float(sys.argv[2])))
+print(json.dumps({"first_call_s": time.perf_counter() - t1}))
+"""
+
+
+def shot_params(scene) -> Params:
+    """The table-tennis shot of ``SHOT`` as a batch of one ball of ``scene``."""
+    p = Params.for_ball(scene, SHOT["ball"], e=SHOT["e"], mu_t=SHOT["mu_t"], position=SHOT["position"],
+                        velocity=SHOT["velocity"], spin=SHOT["spin"])
+    return jax.tree.map(lambda x: jnp.asarray(x)[None], p)
+
+
+def _with_theta(params, ball, theta):
+    """``params`` with ball ``ball``'s (e, mu_t, vx0) set to ``theta``."""
+    return Params(params.e.at[ball].set(theta[0]), params.mu_t.at[ball].set(theta[1]), params.radius,
+                  params.position, params.velocity.at[ball, 0].set(theta[2]), mass=params.mass,
+                  drag_coefficient=params.drag_coefficient, spin=params.spin)
+
+
+def _alternating_us(fns: dict, repeats: int) -> dict:
+    """Median time (us) of each zero-argument call of ``fns``, all timed once per round."""
+    for fn in fns.values():
+        jax.block_until_ready(fn())
+    times = {k: [] for k in fns}
+    for _ in range(max(int(repeats), 1)):
+        for key, fn in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(fn())
+            times[key].append(time.perf_counter() - t)
+    return {k: statistics.median(v) * 1e6 for k, v in times.items()}
+
+
+def run_air_speed(*, repeats: int = 100) -> dict:
+    """The air path (``estim.forward._ode``) against a plain diffrax event loop
+    (``estim.app._event_loop``) in this process: the seed's three balls in still air
+    (data/scenes/stairs_air.xml, 2.3 s) forward, and the golf ball's d x_final / d(e, mu_t,
+    vx0) (estim: ``jacfwd``; the loop: ``jax.grad``), with errors against a tight reference
+    (Dopri8 at rtol 1e-13); a table-tennis shot (``SHOT``) forward; the first call of the
+    air path in a fresh process."""
+    scenes_dir = os.path.dirname(default_scene_path())
+    air_path = os.path.join(scenes_dir, "stairs_air.xml")
+    first = _first_call_air(air_path)
+    scene = load_scene(air_path)
+    params = seed_params(scene)
+    t_end = SEED["t_end"]
+    ref = simulate(scene, params, t_end, solver=diffrax.Dopri8(), rtol=1e-13, atol=1e-14, keep=("events",))
+    forward = jax.jit(lambda p: simulate(scene, p, t_end, keep=()).final.position)
+    events = simulate(scene, params, t_end, keep=("events",)).events
+    loop = jax.jit(lambda p: event_loop(scene, p, t_end))
+    golf = 1
+    theta = jnp.array([params.e[golf], params.mu_t[golf], params.velocity[golf, 0]])
+    grad_estim = jax.jit(jax.jacfwd(
+        lambda th: simulate(scene, _with_theta(params, golf, th), t_end, keep=()).final.position[golf, 0]))
+    grad_loop = jax.jit(jax.grad(lambda th: event_loop(scene, _with_theta(params, golf, th), t_end)[0][golf, 0]))
+
+    shot_scene = load_scene(os.path.join(scenes_dir, SHOT["scene"]))
+    shot = shot_params(shot_scene)
+    shot_forward = jax.jit(lambda p: simulate(shot_scene, p, SHOT["t_end"], keep=()).final.position)
+    shot_loop = jax.jit(lambda p: event_loop(shot_scene, p, SHOT["t_end"])[0])
+    times = _alternating_us({
+        "forward": lambda: forward(params), "loop_forward": lambda: loop(params)[0],
+        "gradient": lambda: grad_estim(theta), "loop_gradient": lambda: grad_loop(theta),
+        "shot": lambda: shot_forward(shot), "shot_loop": lambda: shot_loop(shot),
+    }, repeats)
+
+    loop_final, _, loop_times = loop(params)
+    ref_final = np.asarray(ref.final.position)
+    ref_counts = np.asarray(ref.events.count)
+    shot_ref = simulate(shot_scene, shot, SHOT["t_end"], solver=diffrax.Dopri8(), rtol=1e-13, atol=1e-14,
+                        keep=("events",))
+    result = {
+        "forward_us": times["forward"], "loop_forward_us": times["loop_forward"],
+        "forward_ratio": times["forward"] / times["loop_forward"],
+        "final_position_error": float(np.max(np.linalg.norm(np.asarray(forward(params)) - ref_final, axis=1))),
+        "loop_final_position_error": float(np.max(np.linalg.norm(np.asarray(loop_final) - ref_final, axis=1))),
+        "events": np.asarray(events.count).tolist(),
+        "loop_events": np.sum(np.isfinite(np.asarray(loop_times)), axis=1).tolist(),
+        "reference_events": ref_counts.tolist(),
+        "gradient_us": times["gradient"], "loop_gradient_us": times["loop_gradient"],
+        "gradient_ratio": times["gradient"] / times["loop_gradient"],
+        "gradient": np.asarray(grad_estim(theta)).tolist(), "loop_gradient": np.asarray(grad_loop(theta)).tolist(),
+        "shot_forward_us": times["shot"], "shot_loop_forward_us": times["shot_loop"],
+        "shot_events": int(np.asarray(shot_ref.events.count)[0]),
+        "shot_final_position_error": float(np.linalg.norm(np.asarray(shot_forward(shot))[0]
+                                                          - np.asarray(shot_ref.final.position)[0])),
+        "first_call_s": first["first_call_s"],
+        "settings": dict(DEFAULT_SETTING),
+        "repeats": int(repeats),
+    }
+    result["targets"] = {
+        key: {"target": f"{'<=' if op == 'le' else '<' if op == 'lt' else '>='} {target:g}",
+              "met": bool({"le": result[key] <= target, "lt": result[key] < target,
+                           "ge": result[key] >= target}[op])}
+        for key, (op, target) in AIR_TARGETS.items()
+    }
+    return result
+
+
+def _first_call_air(scene_path: str) -> dict:
+    cmd = [sys.executable, "-c", _AIR_FIRST_CALL, scene_path, str(SEED["t_end"])]
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, env=dict(os.environ))
+    if proc.returncode != 0:
+        raise RuntimeError(f"first-call subprocess failed:\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def format_air_speed(r: dict) -> str:
+    t = r["targets"]
+
+    def status(key):
+        return f"{t[key]['target']:>9} {'met' if t[key]['met'] else 'NOT met':>8}"
+
+    return "\n".join([
+        "The air path (seed staircase in still air, 3 balls, 2.3 s; estim's defaults "
+        f"{r['settings']['solver']} rtol {r['settings']['rtol']:g}) against a plain diffrax event loop "
+        "(Tsit5, PID rtol 1e-8 atol 1e-9, dtmax 0.004, Event + Newton, restarted per contact, vmapped), "
+        "same process, alternating rounds:",
+        f"{'metric':<44} {'estim':>10} {'loop':>10} {'ratio':>7} {'target':>9} {'status':>8}",
+        f"{'forward, 3 balls (us)':<44} {r['forward_us']:>10.0f} {r['loop_forward_us']:>10.0f} "
+        f"{r['forward_ratio']:>7.2f} {status('forward_ratio')}",
+        f"{'final position error vs reference (m)':<44} {r['final_position_error']:>10.1e} "
+        f"{r['loop_final_position_error']:>10.1e} {'':>7} {status('final_position_error')}",
+        f"{'gradient, golf (us; estim jacfwd, loop grad)':<44} {r['gradient_us']:>10.0f} {r['loop_gradient_us']:>10.0f} "
+        f"{r['gradient_ratio']:>7.2f} {status('gradient_ratio')}",
+        f"{'table-tennis shot forward (us)':<44} {r['shot_forward_us']:>10.1f} {r['shot_loop_forward_us']:>10.1f} "
+        f"{r['shot_forward_us'] / r['shot_loop_forward_us']:>7.2f} {status('shot_forward_us')}",
+        f"{'first call, fresh process (s)':<44} {r['first_call_s']:>10.2f} {'':>10} {'':>7} {status('first_call_s')}",
+        f"contacts per ball: estim {r['events']}, loop {r['loop_events']}, reference {r['reference_events']}; "
+        f"shot: {r['shot_events']} bounce(s), error {r['shot_final_position_error']:.1e} m; "
+        "gradients: estim " + ", ".join(f"{v:.8f}" for v in r["gradient"])
+        + "; loop " + ", ".join(f"{v:.8f}" for v in r["loop_gradient"]) + f"; median of {r['repeats']} rounds",
+    ])
 
 
 # --------------------------------------------------------------------------- bench fit
@@ -479,24 +646,27 @@ ACCURACY_REFERENCE = ("Dopri8", 1e-13)
 ACCURACY_CHECK = ("Tsit5", 1e-13)
 # Quick mode: one solver, two tolerances, the same solver at a tight tolerance as reference.
 QUICK_SOLVERS = ("Tsit5",)
-QUICK_RTOLS = (1e-4, 1e-8)
+QUICK_RTOLS = (1e-4, 1e-9)
 QUICK_REFERENCE = ("Tsit5", 1e-12)
 # estim's defaults (simulate) and the other settings measured around them.
-DEFAULT_SETTING = {"solver": "Tsit5", "rtol": 1e-8, "atol": 1e-9, "contact_slack": 1e-6, "max_steps": 2048}
+DEFAULT_SETTING = {"solver": "Tsit5", "rtol": _ode.RTOL, "atol": _ode.ATOL, "contact_slack": _ode.SLACK,
+                   "max_steps": _ode.MAX_STEPS}
 SLACKS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
 SMALL_MAX_STEPS = 512
 MAX_EVENTS = 64
 ACCURACY_FILES = ("accuracy_table.md", "accuracy.png", "accuracy.json")
+# The plain diffrax event loop's row (estim.app._event_loop; its own tolerances).
+LOOP_KEY = ("diffrax event loop", 1e-8)
 
 
-def _programs(scene, params, t_end, ts):
-    """The compiled programs of the study for one scene and its three balls: forward
-    (three balls) and the reverse-mode gradient of the golf ball's final x w.r.t. (e,
-    mu_t, vx0), on either path (``settings=None``: the closed form). They call the solvers
-    behind ``simulate`` directly, because ``simulate`` checks its tolerances in
+def _programs(scene, params, t_end, ts, ball: int = 1):
+    """The compiled programs of the study for one scene and its balls: forward (all balls)
+    and the gradient of ball ``ball``'s final x w.r.t. (e, mu_t, vx0) (``jax.jacfwd``, as
+    the fits take it), on either path (``settings=None``: the closed form). They call the
+    solvers behind ``simulate`` directly, because ``simulate`` checks its tolerances in
     Python (they cannot be traced through it); here the tolerances and the slack are
-    traced, so one program per path and solver class serves every setting."""
-    golf = jax.tree.map(lambda x: x[1], params)  # the seed order: bocce, golf, pingpong
+    traced, so one program per path and solver class serves every setting. ``ball`` 1 is
+    the golf ball of the seed order (bocce, golf, pingpong)."""
     everything = check_keep(None)
 
     def solve(prm, settings):
@@ -505,15 +675,21 @@ def _programs(scene, params, t_end, ts):
         return solve_ode(scene, prm, t_end, ts, settings, MAX_EVENTS, False, everything)
 
     def final_x(theta, settings):
-        prm = Params(theta[0], theta[1], golf.radius, golf.position,
-                           golf.velocity.at[0].set(theta[2]), mass=golf.mass,
-                           drag_coefficient=golf.drag_coefficient, spin=golf.spin)
-        return solve(prm, settings).final.position[0]
+        return solve(_with_theta(params, ball, theta), settings).final.position[ball, 0]
 
     forward = jax.jit(lambda settings: solve(params, settings))
-    gradient = jax.jit(jax.grad(final_x))
-    theta = jnp.array([golf.e, golf.mu_t, golf.velocity[0]])
+    gradient = jax.jit(jax.jacfwd(final_x))
+    theta = jnp.array([params.e[ball], params.mu_t[ball], params.velocity[ball, 0]])
     return forward, (lambda settings: gradient(theta, settings))
+
+
+def _loop_programs(scene, params, t_end, ball: int = 1):
+    """The plain diffrax event loop's programs, as ``_programs``'s (the settings ignored):
+    its gradient is ``jax.grad`` (reverse mode, diffrax's default adjoint)."""
+    forward = jax.jit(lambda: event_loop(scene, params, t_end))
+    gradient = jax.jit(jax.grad(lambda th: event_loop(scene, _with_theta(params, ball, th), t_end)[0][ball, 0]))
+    theta = jnp.array([params.e[ball], params.mu_t[ball], params.velocity[ball, 0]])
+    return (lambda settings: forward()), (lambda settings: gradient(theta))
 
 
 def _settings(solver: str, rtol: float, slack: float = 1e-6, max_steps: int = 2048):
@@ -566,15 +742,19 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
         """Values of one setting (compiling on first use)."""
         forward, gradient = programs
         t0 = time.perf_counter()
-        traj = jax.block_until_ready(forward(settings))
+        out = jax.block_until_ready(forward(settings))
         grad = np.asarray(gradient(settings))
-        steps = (np.asarray(jnp.sum(traj.solution.steps.kind < 5, axis=-1)).tolist()
-                 if settings is not None else None)
         say(f"{label}: {time.perf_counter() - t0:.1f} s")
+        if isinstance(out, tuple):  # the diffrax loop: final position, velocity, contact times
+            times = np.asarray(out[2])
+            return {"t": times, "counts": np.sum(np.isfinite(times), axis=1), "final": np.asarray(out[0]),
+                    "gradient": grad, "complete": True, "steps": None, "call": (programs, settings)}
+        steps = (np.asarray(jnp.sum(out.solution.steps.kind < 5, axis=-1)).tolist()
+                 if settings is not None else None)
         return {
-            "t": np.asarray(traj.events.t), "counts": np.asarray(traj.events.count),
-            "final": np.asarray(traj.final.position), "gradient": grad,
-            "complete": bool(np.all(np.asarray(traj.complete))), "steps": steps,
+            "t": np.asarray(out.events.t), "counts": np.asarray(out.events.count),
+            "final": np.asarray(out.final.position), "gradient": grad,
+            "complete": bool(np.all(np.asarray(out.complete))), "steps": steps,
             "call": (programs, settings),
         }
 
@@ -652,8 +832,9 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
     if not quick:
         settings_runs[("max_steps", SMALL_MAX_STEPS)] = measure(
             programs, _settings(*default_key, max_steps=SMALL_MAX_STEPS), f"air, default, max_steps {SMALL_MAX_STEPS}")
+    loop = measure(_loop_programs(air, seed_params(air), t_end), None, "air, diffrax event loop")
     say("air: timing")
-    time_all({**runs, **settings_runs, ("reference", None): ref})
+    time_all({**runs, **settings_runs, ("reference", None): ref, ("loop", None): loop})
     base = runs[default_key]
     result["air"] = {
         "scene": "data/scenes/stairs_air.xml",
@@ -662,6 +843,7 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
                       "steps": int(sum(ref["steps"])), "events": ref["counts"].tolist(),
                       "complete": ref["complete"], "gradient": ref["gradient"].tolist()},
         "rows": [row(k, r, ref, base) for k, r in runs.items() if k[1] in rtols and k[0] in solvers],
+        "event_loop": row(LOOP_KEY, loop, ref, base),
     }
     if check is not None:
         other = measure(programs, _settings(*check), f"air, check {check[0]} rtol {check[1]:g}")
@@ -674,6 +856,31 @@ def run_accuracy(*, repeats: int = 7, quick: bool = False, solvers=None, rtols=N
         settings_rows.append(r)
     settings_rows.sort(key=lambda r: (r["max_steps"] != DEFAULT_SETTING["max_steps"], -r["contact_slack"]))
     result["air"]["settings_rows"] = settings_rows if len(settings_rows) > 1 else []
+    # (d) A spinning table-tennis shot in air: the solvers and the loop against a reference.
+    shot_scene = load_scene(os.path.join(scenes_dir, SHOT["scene"]))
+    shot = shot_params(shot_scene)
+    shot_end = jnp.asarray(SHOT["t_end"])
+    shot_ts = jnp.stack([jnp.zeros(()), shot_end])
+    programs = _programs(shot_scene, shot, shot_end, shot_ts, ball=0)
+    shot_ref = measure(programs, _settings(*reference), f"shot, reference {reference[0]} rtol {reference[1]:g}")
+    shot_runs = {}
+    for solver in solvers:
+        for rtol in rtols:
+            shot_runs[(solver, rtol)] = measure(programs, _settings(solver, rtol), f"shot, {solver} rtol {rtol:g}")
+    if default_key not in shot_runs:
+        shot_runs[default_key] = measure(programs, _settings(*default_key), "shot, default")
+    shot_loop = measure(_loop_programs(shot_scene, shot, shot_end, ball=0), None, "shot, diffrax event loop")
+    say("shot: timing")
+    time_all({**shot_runs, ("reference", None): shot_ref, ("loop", None): shot_loop})
+    shot_base = shot_runs[default_key]
+    result["shot"] = {
+        "scene": f"data/scenes/{SHOT['scene']}", "shot": dict(SHOT),
+        "reference": {"solver": reference[0], "rtol": reference[1], "forward_ms": shot_ref["forward_ms"],
+                      "gradient_ms": shot_ref["gradient_ms"], "steps": int(sum(shot_ref["steps"])),
+                      "events": shot_ref["counts"].tolist(), "gradient": shot_ref["gradient"].tolist()},
+        "rows": [row(k, r, shot_ref, shot_base) for k, r in shot_runs.items() if k[1] in rtols and k[0] in solvers],
+        "event_loop": row(LOOP_KEY, shot_loop, shot_ref, shot_base),
+    }
     result["machine"] = {
         "cpu_count": os.cpu_count(), "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(), "python": platform.python_version(),
@@ -718,10 +925,25 @@ def format_accuracy(r: dict) -> str:
         "",
         f"**(b) Seed scene in still air** (`data/scenes/stairs_air.xml`), against {ref['solver']} at "
         f"rtol {ref['rtol']:.0e} (forward {ref['forward_ms']:.3g} ms, gradient {ref['gradient_ms']:.3g} ms, "
-        f"{ref['steps']} steps). *× default*: forward time over Tsit5 at rtol 1e-8 (estim's default), same run.",
+        f"{ref['steps']} steps). *× default*: forward time over Tsit5 at rtol {DEFAULT_SETTING['rtol']:.0e} "
+        "(estim's default), same run. Last row: a plain diffrax event loop (`estim.app._event_loop`: Tsit5, "
+        "PID rtol 1e-8 atol 1e-9, dtmax 0.004, `diffrax.Event` with Newton, restarted per contact, vmapped; "
+        "its gradient by `jax.grad`), timed in the same rounds.",
         "",
-        table(air["rows"], "× default"),
+        table(air["rows"] + ([air["event_loop"]] if "event_loop" in air else []), "× default"),
     ]
+    shot = r.get("shot")
+    if shot:
+        sh, sref = shot["shot"], shot["reference"]
+        out += [
+            "",
+            f"**(d) A spinning table-tennis shot** (`{shot['scene']}`: 40 mm, 2.7 g, from {list(sh['position'])} m "
+            f"at {list(sh['velocity'])} m/s, spin {list(sh['spin'])} rad/s, e {sh['e']}, mu_t {sh['mu_t']}, "
+            f"{sh['t_end']} s, {sref['events'][0]} bounce), against {sref['solver']} at rtol {sref['rtol']:.0e}; "
+            "gradient of its final x. Last row: the diffrax loop.",
+            "",
+            table(shot["rows"] + [shot["event_loop"]], "× default"),
+        ]
     chk = air.get("reference_check")
     if chk:
         out += ["", f"Reference check: {chk['solver']} at rtol {chk['rtol']:.0e} differs from the reference by "
@@ -731,7 +953,8 @@ def format_accuracy(r: dict) -> str:
     if air.get("settings_rows"):
         out += [
             "",
-            "**(c) Around the default** (still air, Tsit5, rtol 1e-8, atol 1e-9): the contact slack"
+            f"**(c) Around the default** (still air, Tsit5, rtol {DEFAULT_SETTING['rtol']:.0e}, atol "
+            f"{DEFAULT_SETTING['atol']:.0e}): the contact slack"
             + (" and the step budget `max_steps`" if any(x["max_steps"] != DEFAULT_SETTING["max_steps"]
                                                           for x in air["settings_rows"]) else "")
             + ", against the same reference.",
@@ -746,11 +969,12 @@ def format_accuracy(r: dict) -> str:
                 f"| {x['contact_slack']:.0e} | {x['max_steps']} | {_e(x['event_time_error'])}{mark} "
                 f"| {_e(x['final_position_error'])} | {_e(x['gradient_error'])} | {x['forward_ms']:.3g} "
                 f"| {x['forward_ratio']:.3g} | {x['gradient_ms']:.3g} | {x['steps']} | {'yes' if x['complete'] else 'no'} |")
-    mismatched = [x for x in vac["rows"] + air["rows"] + air.get("settings_rows", []) if not x["events_match"]]
+    mismatched = [x for x in vac["rows"] + air["rows"] + air.get("settings_rows", []) + (shot or {}).get("rows", [])
+                  if not x["events_match"]]
     m = r["machine"]
     out += ["", "Errors: largest over the three balls (event times: over the events both runs list; "
                 "final position: distance) and over the three components of the golf ball's "
-                "d x_final/d(e, mu_t, vx0) (`jax.grad`). Times: medians over "
+                "d x_final/d(e, mu_t, vx0) (estim: `jax.jacfwd`; the loop: `jax.grad`). Times: medians over "
                 f"{r['repeats']} rounds; forward = three balls in one call, gradient = the golf ball; "
                 "steps = accepted steps of the three balls."
                 + (" †: the event counts differ from the reference's (" + "; ".join(
@@ -772,8 +996,10 @@ def plot_accuracy(r: dict, path: str) -> None:
     from matplotlib import ticker
 
     floor = 1e-17
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8), sharey="row")
-    panels = (("vacuum", "(a) no air: ODE path vs closed form"), ("air", "(b) still air: vs reference"))
+    panels = [("vacuum", "(a) no air: ODE path vs closed form"), ("air", "(b) still air: vs reference")]
+    if "shot" in r:
+        panels.append(("shot", "(d) table-tennis shot: vs reference"))
+    fig, axes = plt.subplots(2, len(panels), figsize=(5.5 * len(panels), 8), sharey="row")
     for col, (key, title) in enumerate(panels):
         rows = r[key]["rows"]
         for top, (tkey, ekey, ylabel) in enumerate((("forward_ms", "final_position_error", "final position error (m)"),
@@ -790,27 +1016,36 @@ def plot_accuracy(r: dict, path: str) -> None:
             closed = [x for x in rows if x["rtol"] is None]
             if closed:
                 ax.loglog([closed[0][tkey]], [floor], "k*", ms=11, label="closed form (exact)")
-            if key == "air":
-                ref = r["air"]["reference"]
+            extra = []
+            if key != "vacuum":
+                ref = r[key]["reference"]
                 ax.loglog([ref[tkey]], [floor], "k^", ms=9,
                           label=f"reference ({ref['solver']}, rtol {ref['rtol']:.0e})")
-            if key == "air" and top == 0:
-                d = [x for x in rows if x["solver"] == "Tsit5" and x["rtol"] == 1e-8]
+                extra.append(ref[tkey])
+                loop = r[key].get("event_loop")
+                if loop:
+                    ax.loglog([loop[tkey]], [max(loop[ekey], floor)], "kX", ms=10, label="plain diffrax event loop")
+                    extra.append(loop[tkey])
+            if key != "vacuum" and top == 0:
+                d = [x for x in rows if x["solver"] == DEFAULT_SETTING["solver"] and x["rtol"] == DEFAULT_SETTING["rtol"]]
                 if d:
                     ax.loglog([d[0][tkey]], [max(d[0][ekey], floor)], "s", mfc="none", mec="k", ms=12,
                               label="estim's default")
-            times = [x[tkey] for x in rows] + ([r["air"]["reference"][tkey]] if key == "air" else [])
+            times = [x[tkey] for x in rows] + extra
             ax.set_xlim(min(times) / 1.6, max(times) * 1.6)
             ax.xaxis.set_major_locator(ticker.LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
             ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
             ax.xaxis.set_minor_formatter(ticker.NullFormatter())
-            ax.set_xlabel(f"time per {'forward, 3 balls' if top == 0 else 'gradient, golf'} (ms)")
+            what = ("forward, 1 ball" if key == "shot" else "forward, 3 balls") if top == 0 else (
+                "gradient" if key == "shot" else "gradient, golf")
+            ax.set_xlabel(f"time per {what} (ms)")
             ax.set_ylabel(ylabel)
             ax.grid(alpha=0.3, which="both")
             if top == 0:
                 ax.set_title(title)
             ax.legend(fontsize=7)
-    fig.suptitle("Work-precision, seed staircase, 2.3 s (labels: log10 rtol; zero error drawn at 1e-17)", fontsize=10)
+    fig.suptitle("Work-precision: seed staircase, 2.3 s; table-tennis shot, 0.42 s "
+                 "(labels: log10 rtol; zero error drawn at 1e-17)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

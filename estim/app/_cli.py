@@ -178,6 +178,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run on this many CPUs (Linux: the process's CPU affinity, set before "
                             "JAX starts, as `taskset` does): shows what XLA's thread pool costs a "
                             "small call (docs/pages/speed.md)")
+    speed.add_argument("--no-air", dest="air", action="store_false",
+                       help="leave out the air path against a plain diffrax event loop (about a minute of "
+                            "compiling; docs/pages/speed.md)")
     speed.set_defaults(func=_cmd_bench_speed)
     fitb = bsub.add_parser("fit", help="estim fit on the bundled tracks: cold, cached, steady",
                            description="Time `estim fit` on the bundled tracks from process "
@@ -209,7 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     accb.add_argument("--repeats", type=_positive_int, default=None,
                       help="timing rounds per setting, median reported (default 7; 3 with --quick)")
     accb.add_argument("--quick", action="store_true",
-                      help="one solver (Tsit5), two tolerances (1e-4, 1e-8), reference Tsit5 at 1e-12")
+                      help="one solver (Tsit5), two tolerances (1e-4, 1e-9), reference Tsit5 at 1e-12")
     accb.add_argument("--json", action="store_true", help="print the results as one JSON object")
     accb.set_defaults(func=_cmd_bench_accuracy)
 
@@ -432,7 +435,7 @@ def _format_simulation(out: dict) -> str:
 
 
 def _cmd_bench_speed(args) -> int:
-    result = run_speed(batch=args.batch, repeats=args.repeats, scene_path=args.scene, cpus=args.cpus)
+    result = run_speed(batch=args.batch, repeats=args.repeats, scene_path=args.scene, cpus=args.cpus, air=args.air)
     if args.json:
         print(dumps(result))
     else:

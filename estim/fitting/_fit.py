@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._config import FIT_COMPILE, jit, require_x64
+from ..forward import _ode
 from ..forward._balls import check_outside
 from ..forward._dispatch import ODE, closed_form_plan, path
 from ..forward._ode import OdeSettings
@@ -93,7 +94,7 @@ class _Problem(eqx.Module):
 
 # The ODE path's settings in a fit (scenes with air): the defaults of estim.simulate, with a
 # step budget for tracks of a few seconds.
-FIT_ODE = dict(rtol=1e-8, atol=1e-9, contact_slack=1e-6, max_steps=1024)
+FIT_ODE = dict(rtol=_ode.RTOL, atol=_ode.ATOL, contact_slack=_ode.SLACK, max_steps=1024)
 
 
 def _model(scene: Scene, phi, problem: _Problem):
@@ -126,8 +127,8 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
     with air. Derivatives replay the first ``n_used`` slots (the batch's largest count)."""
     params, ts, t_end = _model(scene, phi, problem)
     if path(scene) == ODE:
-        pos, _, events, *_ = ode_finish(scene, params, t_end, ts, _ode_settings(), 64, pl, n_used)
-        return pos, events, ts
+        parts = ode_finish(scene, params, t_end, ts, _ode_settings(), 64, pl, n_used, frozenset({"samples", "events"}))
+        return parts["position"], parts["events"], ts
     segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, n_used)
     law = law_of(scene)
     pos, _ = sample(segs, pl.decisions, law, law.coefficients(params), scene.gravity, ts)

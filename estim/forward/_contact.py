@@ -379,3 +379,38 @@ def series_clear(faces: Faces, face, p, v, duration, gravity):
     d = jnp.sqrt(jnp.sum(v * v)) * duration + 0.5 * gravity * duration**2
     meets = jnp.all(p - d < faces.hi, axis=1) & jnp.all(p + d > faces.lo, axis=1)
     return ~jnp.any(meets & (jnp.arange(faces.lo.shape[0]) != faces.row[face, SOLID]))
+
+
+def sweep_clear(faces: Faces, p, v, a, h, margin):
+    """Whether a ball whose centre stays within ``margin`` of the parabola
+    ``p + v tau + a tau^2 / 2`` over ``0 <= tau <= h`` provably touches no solid then.
+
+    The parabola lies in its bounding box (per axis: the end points and the apex where it
+    falls inside the step); every point of the ball's contact region with a solid lies in
+    that solid's box grown by r along each axis (``Faces.lo``/``hi``: the region's L1 excess
+    is at most r). So if the box of the parabola, grown by ``margin``, meets no grown box,
+    no contact is possible within the step. Conservative: a ball that touches a solid (just
+    bounced off it, or lands within the step) is never clear."""
+    p1, _ = ballistic(p, v, a, h)
+    apex = jnp.where(a != 0, -v / jnp.where(a != 0, a, 1.0), 0.0)
+    inside = (apex > 0) & (apex < h)
+    q_apex, _ = ballistic(p, v, a, jnp.where(inside, apex, 0.0))
+    lo = jnp.minimum(jnp.minimum(p, p1), jnp.where(inside, q_apex, p)) - margin
+    hi = jnp.maximum(jnp.maximum(p, p1), jnp.where(inside, q_apex, p)) + margin
+    meets = jnp.all(lo < faces.hi, axis=1) & jnp.all(hi > faces.lo, axis=1)
+    return ~jnp.any(meets)
+
+
+def clear_time(faces: Faces, p, v, a, h, margin, iterations: int = 12):
+    """The longest ``tau <= h`` (to ``h / 2^iterations``) for which ``sweep_clear`` holds,
+    by bisection: the test is monotone in the step length (a shorter parabola has a
+    smaller box). 0 if none."""
+
+    def halve(_, bracket):
+        lo, hi = bracket
+        mid = 0.5 * (lo + hi)
+        ok = sweep_clear(faces, p, v, a, mid, margin)
+        return jnp.where(ok, mid, lo), jnp.where(ok, hi, mid)
+
+    lo, _ = jax.lax.fori_loop(0, iterations, halve, (0.0 * h, h))
+    return lo

@@ -29,6 +29,7 @@ import numpy as np
 from ..model._air import Air
 from ..model._params import Params
 from ..model._scene import Scene
+from ._ode import ATOL, RTOL
 from ._simulate import simulate
 from ._trajectory import IMPACT
 
@@ -199,8 +200,8 @@ def effect_sizes(
     spin=SPIN,
     wind=WIND,
     samples: int = SAMPLES,
-    rtol: float = 1e-8,
-    atol: float = 1e-9,
+    rtol: float = RTOL,
+    atol: float = ATOL,
 ) -> EffectReport:
     """How much each force of the air changes the motion of a scene's balls.
 

@@ -8,12 +8,24 @@ found without ever stepping over one:
    its current acceleration a0, ``q(tau) = p + v tau + a0 tau^2 / 2``, and the exact
    closed-form contact search of the gravity-only solver (``estim.forward._contact.first_contact``,
    ``slide_exit_time``) gives the first face it enters, and when.
-2. *A step bound.* A step is accepted only if the integrated end point lies within
-   ``SLACK`` (1 micrometre) of that parabola. Since the distance between the true path
-   and the parabola grows like tau^3 along a step, the path stays within ``SLACK`` of the
-   parabola over the whole step, so the only contacts the prediction can miss are grazes
-   that dip less than ``SLACK`` into a face. No contact deeper than that is skipped,
-   whatever the tolerances, and no ball tunnels through a solid.
+2. *A step bound.* Away from every solid a step is as long as the tolerance allows: over a
+   step of length h the true path stays within ``D(h) = L A h^3 / 6`` of that parabola, a
+   rigorous bound (``estim.model._air.step_bounds``: A bounds the acceleration and L the
+   Lipschitz constant of the air's over every velocity the ball can reach in h), so if the
+   parabola's bounding box over the step, grown by ``D(h) + SLACK``, meets no solid's box
+   grown by r (``estim.forward._contact.sweep_clear``), the true path touches no solid in
+   the step, whatever its length, and no contact is searched for. Only a step that this
+   test cannot clear (the ball near a solid, or sliding on one) is bounded as follows: it
+   is accepted only if the integrated end point lies within ``SLACK`` (1 micrometre) of
+   the parabola. Since the distance between the true path and the parabola grows like
+   tau^3 along a step, the path stays within ``SLACK`` of the parabola over the whole
+   step, so the only contacts the prediction can miss are grazes that dip less than
+   ``SLACK`` into a face. No contact deeper than that is skipped, whatever the
+   tolerances, and no ball tunnels through a solid. (The integrated path differs from
+   the true one by the local error that the tolerances control, about atol, far below
+   the ``SLACK`` that both bounds add.) ``tests/test_air_contacts.py`` checks the bound
+   against an independent integration and the first contacts of fast spinning throws
+   against a loop of capped steps.
 3. *Root finding.* When a contact (or a slide's exit over an edge) is predicted within the
    step, the step is shortened to the event: a Newton iteration solves
    ``G(tau) = n . q_RK(tau) - H = 0`` where ``q_RK(tau)`` is the solver's own step of length
@@ -50,7 +62,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from ..model._air import acceleration
+from ..model._air import acceleration, step_bounds
 from ._constants import (
     AXIS_TOL,
     FLIGHT,
@@ -74,16 +86,18 @@ from ._contact import (
     HALF,
     NORMAL,
     Faces,
+    clear_time,
     face_normal,
     faces_for,
     first_contact,
     on_face,
     series_clear,
     slide_exit_time,
+    sweep_clear,
     train_reach,
 )
 from ._scan import scan_used
-from ._trajectory import AbstractSolution, Events, State
+from ._trajectory import AbstractSolution, Events, State, trajectory_parts
 from .laws import AbstractContactLaw, law_of, series
 
 # What a step is (Step.kind: STEP_PLAIN, STEP_LAST, STEP_CONTACT, STEP_EXIT, STEP_ZENO,
@@ -93,6 +107,12 @@ from .laws import AbstractContactLaw, law_of, series
 # The default largest distance (m) the integrated path may stray from a step's contact
 # parabola (``simulate(..., contact_slack=...)``).
 SLACK = 1e-6
+# The default tolerances of the step-size control and step budget per ball: the fastest
+# setting of ``estim bench accuracy`` within 1e-9 m of the reference on the drag scene
+# (docs/pages/accuracy.md).
+RTOL = 1e-9
+ATOL = 1e-10
+MAX_STEPS = 2048
 NEWTON_ITERATIONS = 6
 
 # Incremented each time the ODE program is traced: tests use it to check that a scene
@@ -287,9 +307,24 @@ def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duratio
                       series_clear(faces, f, p, v, duration, gravity))
     g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
     a_air = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v) - g_vec
+    return (duration <= _zeno_time(a_air, slack)) & lands & clear
+
+
+def _zeno_time(a_air, slack):
+    """The longest bounce series whose air acceleration ``a_air`` moves the ball by at most
+    ``slack``: ``sqrt(2 slack / |a_air|)`` (inf without air)."""
     air_scale = jnp.linalg.norm(a_air)
-    t_zeno = jnp.where(air_scale > 0, jnp.sqrt(2.0 * slack / jnp.where(air_scale > 0, air_scale, 1.0)), jnp.inf)
-    return (duration <= t_zeno) & lands & clear
+    return jnp.where(air_scale > 0, jnp.sqrt(2.0 * slack / jnp.where(air_scale > 0, air_scale, 1.0)), jnp.inf)
+
+
+def _zeno_possible(faces: Faces, g_vec, pending, v, a0, slack, t_left):
+    """A cheap necessary condition of ``_zeno_allowed`` after a bounce on ``pending``: the
+    series lasts at least its first flight ``2 w / |g_n|`` (or until ``t_end``), which must
+    not exceed ``_zeno_time``."""
+    n = face_normal(faces, jnp.maximum(pending, 0))
+    a_n = -jnp.dot(n, g_vec)
+    first = jnp.where(a_n > 0, 2.0 * jnp.dot(v, n) / jnp.where(a_n > 0, a_n, 1.0), jnp.inf)
+    return (pending >= 0) & (jnp.minimum(first, t_left) <= _zeno_time(a0 - g_vec, slack))
 
 
 class Plan(eqx.Module):
@@ -329,39 +364,73 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         args = (n_sup, sliding)
         a0 = f(y, args)[3:]
 
-        # A Zeno series closed in one piece.
-        zeno_ok, z_cut, z_dur, z_travel, z_vel = _zeno(faces, g, air, law, params, pending, p, v,
-                                                       settings.slack, t_end - t)
+        # A Zeno series closed in one piece (tried only after a bounce: a branch, since each
+        # ball runs its own loop, estim.forward._simulate).
+        zeno_ok, z_cut, z_dur, z_travel, z_vel = jax.lax.cond(
+            _zeno_possible(faces, g_vec, pending, v, a0, settings.slack, t_end - t),
+            lambda: _zeno(faces, g, air, law, params, pending, p, v, settings.slack, t_end - t),
+            lambda: (jnp.bool_(False), jnp.bool_(False), jnp.float64(0.0), jnp.zeros(3), v),
+        )
 
         # The next event on the step's parabola.
         h_try = jnp.minimum(h, t_end - t)
-        tau_c, face_c = first_contact(faces, p, v, a0, support)
-        tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v, a0), jnp.inf)
-        contact = (tau_c <= h_try) & (tau_c <= tau_x)
-        leaves = (tau_x <= h_try) & ~contact
-        tau_e = jnp.where(contact, tau_c, tau_x)
-        q_e = p + v * jnp.where(leaves, tau_x, 0.0) + 0.5 * a0 * jnp.where(leaves, tau_x, 0.0) ** 2
-        bound = _exit_bound(faces, support, q_e)
-        ev_kind = jnp.where(contact, STEP_CONTACT, STEP_EXIT)
-        ev_face = jnp.where(contact, face_c, support)
-        n_g, h_g = _guard(faces, ev_kind, ev_face, bound)
-        event = contact | leaves
-        tau_ev, miss = _event_time(settings, f, t, y, args, n_g, h_g, jnp.where(event, tau_e, 0.0))
-        # Newton finds no root within the step: the true path does not reach the face (a
-        # graze within SLACK); step on.
-        event = event & (miss <= settings.slack) & (tau_ev <= h_try)
+        # Away from every solid the step is the tolerance's alone: the path stays within
+        # the rigorous bound (4) of estim.model._air of its parabola, and a parabola whose
+        # box, grown by that bound, meets no solid cannot touch one (``sweep_clear``); then
+        # no contact is searched for. A sliding ball keeps the slack bound (its face's
+        # edges are its events).
+        a_max, lip = step_bounds(air, g, params.radius, params.mass, params.drag_coefficient, params.spin, v,
+                                 h_try)
+        margin = lip * a_max * h_try**3 / 6.0 + settings.slack
+        clear = ~sliding & sweep_clear(faces, p, v, a0, h_try, margin)
+        # A step that cannot be cleared whole may be in part: its longest clear part (the
+        # margin of the whole step still bounds it) is taken where that is at least a
+        # tenth of the step, so that a ball nears a solid in long steps, and only the
+        # last one, which reaches it, is bounded by the slack.
+        h_part = jax.lax.cond(clear | sliding, lambda: h_try,
+                              lambda: clear_time(faces, p, v, a0, h_try, margin))
+        part = ~clear & ~sliding & (h_part >= 0.1 * h_try)
+        h_try = jnp.where(part, h_part, h_try)
+        clear = clear | part
+
+        def predict():
+            """The next event on the step's parabola, and its time on the RK path."""
+            tau_c, face_c = first_contact(faces, p, v, a0, support)
+            tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v, a0), jnp.inf)
+            contact = (tau_c <= h_try) & (tau_c <= tau_x)
+            leaves = (tau_x <= h_try) & ~contact
+            tau_e = jnp.where(contact, tau_c, tau_x)
+            q_e = p + v * jnp.where(leaves, tau_x, 0.0) + 0.5 * a0 * jnp.where(leaves, tau_x, 0.0) ** 2
+            bound = _exit_bound(faces, support, q_e)
+            ev_kind = jnp.where(contact, STEP_CONTACT, STEP_EXIT)
+            ev_face = jnp.where(contact, face_c, support)
+            n_g, h_g = _guard(faces, ev_kind, ev_face, bound)
+            event = contact | leaves
+            tau_ev, miss = jax.lax.cond(
+                event,
+                lambda: _event_time(settings, f, t, y, args, n_g, h_g, tau_e),
+                lambda: (jnp.float64(0.0), jnp.float64(jnp.inf)),
+            )
+            # Newton finds no root within the step: the true path does not reach the face
+            # (a graze within SLACK); step on.
+            event = event & (miss <= settings.slack) & (tau_ev <= h_try)
+            return event, ev_kind.astype(jnp.int32), ev_face.astype(jnp.int32), bound, tau_ev
+
+        event, ev_kind, ev_face, bound, tau_ev = jax.lax.cond(
+            clear,
+            lambda: (jnp.bool_(False), jnp.int32(STEP_CONTACT), jnp.int32(-1), jnp.int32(0), jnp.float64(0.0)),
+            predict,
+        )
         h_step = jnp.where(event, tau_ev, h_try)
 
         y1, y_err = _rk_step(settings, f, t, h_step, y, args)
         scale = settings.atol + settings.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))
         err = jnp.sqrt(jnp.mean((y_err / scale) ** 2))
         dev = jnp.linalg.norm(y1[:3] - (p + v * h_step + 0.5 * a0 * h_step**2))
-        keep = ((err <= 1.0) & (dev <= settings.slack)) | (h_step <= 0.0) | zeno_ok
-        shrink = jnp.minimum(
-            0.9 * jnp.where(err > 0, err, 1e-10) ** (-1.0 / order),
-            0.9 * (settings.slack / jnp.where(dev > 0, dev, 1e-300)) ** (1.0 / 3.0),
-        )
-        factor = jnp.clip(shrink, 0.2, 5.0)
+        keep = ((err <= 1.0) & ((dev <= settings.slack) | clear)) | (h_step <= 0.0) | zeno_ok
+        by_error = 0.9 * jnp.where(err > 0, err, 1e-10) ** (-1.0 / order)
+        by_slack = 0.9 * (settings.slack / jnp.where(dev > 0, dev, 1e-300)) ** (1.0 / 3.0)
+        factor = jnp.clip(jnp.where(clear, by_error, jnp.minimum(by_error, by_slack)), 0.2, 5.0)
 
         last = ~event & (h_step >= t_end - t)
         kind = jnp.where(zeno_ok, STEP_ZENO, jnp.where(event, ev_kind, jnp.where(last, STEP_LAST, STEP_PLAIN)))
@@ -371,7 +440,8 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
             # A STEP_ZENO step records in ``bound`` whether the series was cut at t_end (1).
             jnp.where(zeno_ok, z_cut.astype(jnp.int32), bound), jnp.where(zeno_ok, 0.0, h_step),
         )
-        steps = jax.tree.map(lambda b, x: jnp.where(keep, b.at[k].set(x), b), steps, rec)
+        # (One slot written, in place: a select of the whole buffer would cost O(max_steps) per step.)
+        steps = jax.tree.map(lambda b, x: b.at[k].set(jnp.where(keep, x, b[k])), steps, rec)
 
         # The state after an accepted step.
         p1, v1 = y1[:3], y1[3:]
@@ -407,9 +477,11 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
     return Plan(steps=steps, n_steps=k, complete=done)
 
 
-def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None) -> Node:
+def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None) -> tuple[State, Node]:
     """Recompute every accepted step differentiably (a ``lax.scan`` that runs only the
-    first ``n_used`` steps, default all: ``estim.forward._scan``)."""
+    first ``n_used`` steps, default all: ``estim.forward._scan``). Returns the state after
+    the last step and the steps' nodes (a caller that uses only the state leaves the nodes
+    to JAX's dead-code elimination: the scan then stores nothing per step)."""
     faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
     law = law_of(scene)
     c = law.coefficients(params)
@@ -432,14 +504,17 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
             y1, _ = _rk_step(settings, f, t, tau, y, args)
             return jnp.dot(n_g, y1[:3]) - h_g
 
-        gval, gslope = jax.jvp(guard, (tau_star,), (jnp.ones_like(tau_star),))
-        # No Newton step where the guard is flat (|G'| <= SPEED_TOL, as in plan's
-        # ``_event_time``): an event entered at second order (zero normal speed, tau = 0)
-        # has G' ~ 1e-15 from rounding, and dividing by it threw the ball ~1e15 m away
-        # (then to NaN) where plan had not moved it.
-        newton = is_event & (jnp.abs(gslope) > SPEED_TOL)
-        gslope = jnp.where(newton, gslope, 1.0)
-        tau_event = tau_star - jnp.where(newton, gval / gslope, 0.0)
+        def newton_step():
+            gval, gslope = jax.jvp(guard, (tau_star,), (jnp.ones_like(tau_star),))
+            # No Newton step where the guard is flat (|G'| <= SPEED_TOL, as in plan's
+            # ``_event_time``): an event entered at second order (zero normal speed, tau =
+            # 0) has G' ~ 1e-15 from rounding, and dividing by it threw the ball ~1e15 m
+            # away (then to NaN) where plan had not moved it.
+            newton = jnp.abs(gslope) > SPEED_TOL
+            return tau_star - jnp.where(newton, gval / jnp.where(newton, gslope, 1.0), 0.0)
+
+        # (A branch: each ball replays its own steps, estim.forward._simulate.)
+        tau_event = jax.lax.cond(is_event, newton_step, lambda: tau_star + 0.0 * t)
         h = jnp.select([st.kind == STEP_PLAIN, st.kind == STEP_LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
         y1, _ = _rk_step(settings, f, t, h, y, args)
         p1, v1 = y1[:3], y1[3:]
@@ -449,8 +524,12 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         a1 = f(y1, args)[3:]
         # A Zeno series summed in closed form.
         zeno = st.kind == STEP_ZENO
-        _, _, z_dur, z_travel, z_vel = _zeno(faces, g, air, law, params, jnp.where(zeno, st.face, -1), p, v,
-                                             settings.slack, t_end - t, cut=zeno & (st.bound == 1))
+        _, _, z_dur, z_travel, z_vel = jax.lax.cond(
+            zeno,
+            lambda: _zeno(faces, g, air, law, params, st.face, p, v, settings.slack, t_end - t,
+                          cut=st.bound == 1),
+            lambda: (jnp.bool_(False), jnp.bool_(False), 0.0 * t, 0.0 * v, v),
+        )
         t1 = jnp.where(zeno, t + z_dur, t + h)
         p1 = jnp.where(zeno, p + z_travel, p1)
         v1 = jnp.where(zeno, z_vel, v1)
@@ -469,8 +548,8 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
     none = jnp.int32(-1)
     unused = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, jnp.int32(0), jnp.float64(0.0))
     n_used = steps.kind.shape[0] if n_used is None else n_used
-    _, nodes = scan_used(apply, init, steps, n_used, idle, unused)
-    return nodes
+    (t1, y1), nodes = scan_used(apply, init, steps, n_used, idle, unused)
+    return State(t1, y1[:3], y1[3:]), nodes
 
 
 def sample(nodes: Node, steps: Step, faces_normal_of, law: AbstractContactLaw, c, g, t):
@@ -635,22 +714,28 @@ def list_events(nodes: Node, steps: Step, normals, law: AbstractContactLaw, c, g
     )
 
 
-def solve_one(scene, params, t_end, ts, settings: OdeSettings, max_events: int):
-    """Plan, replay, sample and list events for one ball."""
+def ball_parts(scene, params, t_end, ts, settings: OdeSettings, max_events: int, keep: frozenset[str]) -> dict:
+    """One ball's Trajectory parts (``estim.forward._trajectory.trajectory_parts``): its plan,
+    then ``finish``."""
     pl = plan(scene, params, t_end, settings)
-    return finish(scene, params, t_end, ts, settings, max_events, pl, pl.n_steps)
+    return finish(scene, params, t_end, ts, settings, max_events, pl, pl.n_steps, keep)
 
 
-def finish(scene, params, t_end, ts, settings: OdeSettings, max_events: int, pl: Plan, n_used):
-    """Replay (the first ``n_used`` steps, at least ``pl.n_steps``), sample and list events
-    for one ball."""
-    nodes = replay(scene, params, t_end, pl.steps, settings, n_used)
-    faces = faces_for(scene, params.radius)
-    normals = faces.row[:, NORMAL]
+def finish(scene, params, t_end, ts, settings: OdeSettings, max_events: int, pl: Plan, n_used,
+           keep: frozenset[str]) -> dict:
+    """One ball's Trajectory parts from its plan: the replay of its first ``n_used`` steps
+    (at least ``pl.n_steps``), then only the samples, events and dense solution that
+    ``keep`` keeps."""
+    final, nodes = replay(scene, params, t_end, pl.steps, settings, n_used)
+    normals = faces_for(scene, params.radius).row[:, NORMAL]
     law = law_of(scene)
     c = law.coefficients(params)
-    pos, vel = sample(nodes, pl.steps, lambda f: normals[f], law, c, scene.gravity, ts)
-    events = list_events(nodes, pl.steps, normals, law, c, scene.gravity, max_events)
-    last = jnp.maximum(pl.n_steps - 1, 0)
-    final = State(t_end, nodes.p1[last], nodes.v1_post[last])
-    return pos, vel, events, final, nodes, pl.steps, normals, pl.complete
+    pos = vel = events = None
+    if "samples" in keep:
+        pos, vel = sample(nodes, pl.steps, lambda f: normals[f], law, c, scene.gravity, ts)
+    if "events" in keep:
+        events = list_events(nodes, pl.steps, normals, law, c, scene.gravity, max_events)
+    solution = OdeSolution(nodes=nodes, steps=pl.steps, normals=normals, law=law, coefficients=c,
+                           gravity=scene.gravity)
+    return trajectory_parts(pos, vel, events, State(t_end, final.position, final.velocity), pl.complete,
+                            solution, keep)

@@ -38,7 +38,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["Air", "acceleration"]
+__all__ = ["Air", "acceleration", "step_bounds"]
 
 
 class Air(eqx.Module):
@@ -60,13 +60,18 @@ class Air(eqx.Module):
         self.wind = jnp.asarray(wind, dtype=jnp.float64)
 
 
+# kappa(S) = min(KAPPA_MAX, LIFT_SLOPE + LIFT_OFFSET / S): C_L = 0.09 + 0.6 S above S = 0.1,
+# 1.5 S below (eq. (3)).
+KAPPA_MAX, LIFT_SLOPE, LIFT_OFFSET = 1.5, 0.6, 0.09
+
+
 def lift_ratio(radius, omega2, speed):
     """kappa(S) = C_L(S) / S of eq. (3) with S = r |omega| / speed (1.5 without spin).
 
     Takes |omega|^2 so that the derivative at zero spin is finite (no sqrt of 0)."""
     spinning = omega2 > 0
     omega = jnp.sqrt(jnp.where(spinning, omega2, 1.0))
-    return jnp.where(spinning, jnp.minimum(1.5, 0.6 + 0.09 * speed / (radius * omega)), 1.5)
+    return jnp.where(spinning, jnp.minimum(KAPPA_MAX, LIFT_SLOPE + LIFT_OFFSET * speed / (radius * omega)), KAPPA_MAX)
 
 
 def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity):
@@ -87,3 +92,42 @@ def acceleration(air: Air | None, gravity, radius, mass, drag_coefficient, spin,
     if air is None:
         return g + 0.0 * velocity
     return g + air_acceleration(air, radius, mass, drag_coefficient, spin, velocity)
+
+
+def step_bounds(air: Air | None, gravity, radius, mass, drag_coefficient, spin, velocity, h):
+    """Bounds over a flight of duration ``h`` from ``velocity``: ``(A, L)`` with
+    ``|a(t)| <= A`` all along it and ``L`` a Lipschitz constant of the air's acceleration
+    over every velocity it can reach. Then the path stays within
+
+        |q(tau) - q_par(tau)| <= L A tau^3 / 6,      0 <= tau <= h,                    (4)
+
+    of the parabola ``q_par(tau) = p + v tau + a(v) tau^2 / 2`` of its initial
+    acceleration, since ``q - q_par = int_0^tau (tau - s) (a(v(s)) - a(v)) ds`` and
+    ``|a(v(s)) - a(v)| <= L |v(s) - v| <= L A s``.
+
+    Derivation. Relative to the air, ``w = v - wind`` changes as ``dw/dt = a``; drag
+    (1)-(2) points against w and Magnus (3) across it, so ``d|w|/dt <= g`` and
+    ``|w(t)| <= W = |w(0)| + g h``. Over ``|w| <= W``:
+
+    - ``|a| <= g + k W^2 + c W + M |omega| W`` with k, c, M the factors of (1), (2),
+      (3) and kappa <= 1.5;
+    - the Jacobian of ``-k |w| w`` is ``-k (|w| I + w w^T / |w|)``, of norm ``2 k |w|``;
+      that of (2) has norm c; that of (3) is
+      ``M (kappa [omega]_x + kappa'(S) (omega x w) w^T / |w| ...)``, which the two branches
+      of kappa bound by ``M (1.5 |omega| + 0.09 W / r)`` (``KAPPA_MAX``, ``LIFT_OFFSET``).
+
+    Gravity and wind are constant and drop out of L. A scene without air has
+    ``L = 0``: the parabola is the path."""
+    g = gravity
+    if air is None:
+        return g + 0.0 * h, 0.0 * h
+    w = velocity - air.wind
+    big_w = jnp.sqrt(jnp.sum(w * w)) + g * h
+    area = jnp.pi * radius**2
+    k = air.density * drag_coefficient * area / (2.0 * mass)
+    c = 6.0 * jnp.pi * air.viscosity * radius / mass
+    omega = jnp.sqrt(jnp.sum(spin * spin))
+    m = air.density * area * radius / (2.0 * mass)
+    a_max = g + k * big_w**2 + c * big_w + KAPPA_MAX * m * omega * big_w
+    lipschitz = 2.0 * k * big_w + c + m * (KAPPA_MAX * omega + LIFT_OFFSET * big_w / radius)
+    return a_max, lipschitz

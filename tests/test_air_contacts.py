@@ -1,0 +1,161 @@
+"""The air path's contact guarantee (estim.forward._ode): steps as long as the tolerance
+allows away from solids, and still no contact skipped.
+
+The truths:
+
+- the step bound (4) of ``estim.model._air.step_bounds`` against an independent
+  integration (diffrax Dopri8 at rtol 1e-13) of the same flights;
+- the first contact of random fast, spinning throws in still air with wind against a
+  diffrax integration with a step cap of 0.2 ms and an event on the distance to every solid
+  (the L1 contact region of ``estim.model._scene``, eq. (1), written out here in numpy
+  terms), so that a contact estim's long steps skipped would show as an earlier contact
+  there;
+- the dense solution sampled finely never inside a solid.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+from conftest import ROOT
+
+import estim
+from estim.model._air import Air, acceleration, step_bounds
+
+G = 9.81
+# A table-tennis ball (ITTF: 40 mm, 2.7 g), the lightest and most air-driven of balls.
+RADIUS, MASS = 0.02, 0.0027
+
+
+@pytest.fixture(scope="module")
+def windy():
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "stairs_air.xml")
+    return scene.with_air(Air(density=1.204, viscosity=1.81e-5, wind=(-3.0, 2.0, 0.5)))
+
+
+def _throws(n, seed):
+    """Random throws above the staircase: speeds up to 25 m/s in any direction (into
+    risers, up the stairs, down at the treads), spins up to 400 rad/s."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-0.25, 2.6, n)
+    top = 1.4 - 0.2 * np.clip(np.floor((x - RADIUS + 0.3) / 0.6), 0, 4)  # the higher tread within r
+    pos = np.stack([x, rng.uniform(-0.4, 0.4, n), top + RADIUS + rng.uniform(0.01, 0.6, n)], axis=1)
+    d = rng.normal(size=(n, 3))
+    vel = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.5, 25.0, n)[:, None]
+    spin = rng.normal(size=(n, 3)) * 150.0
+    return estim.Params(np.full(n, 0.8), np.full(n, 0.9), np.full(n, RADIUS), pos, vel, mass=np.full(n, MASS),
+                        drag_coefficient=np.full(n, 0.5), spin=spin)
+
+
+def test_step_bound_holds_against_an_independent_integration(windy):
+    """|q(tau) - q_par(tau)| <= L A tau^3 / 6 along flights of 1 ms to 0.3 s."""
+    params = _throws(24, seed=1)
+    air = windy.air
+    taus = jnp.linspace(0.0, 1.0, 41)
+
+    def one(prm, h):
+        def f(t, y, args):
+            return jnp.concatenate([y[3:], acceleration(air, G, prm.radius, prm.mass, prm.drag_coefficient,
+                                                        prm.spin, y[3:])])
+
+        y0 = jnp.concatenate([prm.position, prm.velocity])
+        sol = diffrax.diffeqsolve(diffrax.ODETerm(f), diffrax.Dopri8(), 0.0, h, h / 50, y0,
+                                  saveat=diffrax.SaveAt(ts=taus * h),
+                                  stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-15),
+                                  max_steps=100_000)
+        a0 = f(0.0, y0, None)[3:]
+        t = taus * h
+        par = prm.position + prm.velocity * t[:, None] + 0.5 * a0 * t[:, None] ** 2
+        dev = jnp.linalg.norm(sol.ys[:, :3] - par, axis=1)
+        a_max, lip = step_bounds(air, G, prm.radius, prm.mass, prm.drag_coefficient, prm.spin, prm.velocity, h)
+        return dev, lip * a_max * t**3 / 6.0
+
+    for h in (1e-3, 1e-2, 0.1, 0.3):
+        dev, bound = jax.jit(jax.vmap(lambda p, h=h: one(p, h)))(params)
+        dev, bound = np.asarray(dev), np.asarray(bound)
+        assert np.all(dev <= bound * (1 + 1e-9) + 1e-13), (h, np.max(dev - bound))
+        # ... and not vacuous: the bound is within a factor 1000 of the deviation at the end.
+        assert np.all(bound[:, -1] < 1e3 * dev[:, -1] + 1e-12), h
+
+
+def _fine_first_contact(scene, params, t_end):
+    """First contact time of each throw by a plain diffrax loop with steps of at most
+    0.2 ms and an event on ``min over solids (L1 excess) - r``, which is negative exactly
+    inside estim's contact region of a box (eq. (1) of estim.model._scene) or below a
+    plane."""
+    c, h = scene.box_centre, scene.box_half
+    n, s = scene.plane_normal, scene.plane_offset
+
+    def one(prm):
+        def f(t, y, args):
+            return jnp.concatenate([y[3:], acceleration(scene.air, G, prm.radius, prm.mass, prm.drag_coefficient,
+                                                        prm.spin, y[3:])])
+
+        def gap(t, y, args, **kw):
+            q = y[:3]
+            excess = jnp.sum(jnp.maximum(jnp.abs(q - c) - h, 0.0), axis=1)
+            planes = q @ n.T - s
+            return jnp.minimum(jnp.min(excess), jnp.min(planes)) - prm.radius
+
+        y0 = jnp.concatenate([prm.position, prm.velocity])
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(f), diffrax.Tsit5(), 0.0, t_end, 1e-4, y0,
+            stepsize_controller=diffrax.PIDController(rtol=1e-12, atol=1e-13, dtmax=2e-4),
+            event=diffrax.Event(gap, root_finder=optx.Newton(rtol=1e-13, atol=1e-14)), max_steps=20_000,
+            throw=False)
+        return jnp.where(sol.event_mask, sol.ts[-1], jnp.inf)
+
+    return np.asarray(jax.jit(jax.vmap(one))(params))
+
+
+def test_no_contact_skipped_on_fast_spinning_throws(windy):
+    """Random fast throws with spin in wind: estim's first contact (default settings, long
+    steps away from solids) is the fine loop's, to 1e-8 s, and its face is on the solid the
+    fine loop's path touches."""
+    params = _throws(64, seed=2)
+    t_end = 1.0
+    traj = estim.simulate(windy, params, t_end, max_events=4)
+    first = np.where(np.asarray(traj.events.count) > 0, np.asarray(traj.events.t[:, 0]), np.inf)
+    fine = _fine_first_contact(windy, params, t_end)
+    hit = np.isfinite(fine)
+    assert hit.sum() >= 40  # most throws reach a solid within t_end
+    np.testing.assert_array_equal(np.isfinite(first), hit)
+    assert np.max(np.abs(first[hit] - fine[hit])) < 1e-8
+    # The solver took long steps: far fewer than the fine loop's 0.2 ms cap would need.
+    steps = np.asarray(jnp.sum(traj.solution.steps.kind < 5, axis=-1))
+    assert np.median(steps) < 0.1 * t_end / 2e-4
+
+
+def test_dense_solution_never_inside_a_solid(windy):
+    """Sampled every 0.1 ms over 1.5 s, no throw's centre is inside a solid's contact region
+    by more than 1e-9 m (the L1 excess of eq. (1), estim.model._scene)."""
+    params = _throws(16, seed=3)
+    ts = np.linspace(0.0, 1.5, 15_001)
+    traj = estim.simulate(windy, params, 1.5, ts=ts, keep=("samples",))
+    q = np.asarray(traj.position)  # (balls, times, 3)
+    c, h = np.asarray(windy.box_centre), np.asarray(windy.box_half)
+    excess = np.maximum(np.abs(q[:, :, None, :] - c) - h, 0.0).sum(axis=-1).min(axis=-1)
+    ground = q[:, :, 2]
+    depth = RADIUS - np.minimum(excess, ground)
+    assert np.max(depth) < 1e-9, np.max(depth)
+
+
+@pytest.mark.parametrize("delta", [1e-9, 1e-7, 1e-5, -1e-7, -1e-5])
+def test_fall_grazing_a_tread_edge(delta):
+    """A ball dropped in still air (quadratic drag only: it falls straight down) with its
+    centre ``r + delta`` beyond the edge of tread 1. With delta > 0 it passes the tread and
+    lands on tread 2; with delta < 0 it meets tread 1's edge region where the L1 excess
+    ``(r + delta) + (z - top)`` reaches r, at ``z = top - delta``. The truth is the closed form
+    of the fall, ``z(t) = z0 - ln cosh(t sqrt(g k)) / k``."""
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml").with_air(Air(density=1.204))
+    z0, x = 1.7, 0.3 + RADIUS + delta
+    prm = estim.Params(0.8, 0.9, RADIUS, (x, 0.0, z0), (0.0, 0.0, 0.0), mass=MASS, drag_coefficient=0.5)
+    traj = estim.simulate(scene, prm, 0.8, max_events=4)
+    k = 1.204 * 0.5 * np.pi * RADIUS**2 / (2 * MASS)
+    landing = 1.4 - delta if delta < 0 else 1.2 + RADIUS
+    t_true = np.arccosh(np.exp(k * (z0 - landing))) / np.sqrt(G * k)
+    assert int(traj.events.count) >= 1
+    assert abs(float(traj.events.t[0]) - t_true) < 1e-9
+    assert scene.face_label(int(traj.events.face[0]))[0] == ("step1" if delta < 0 else "step2")
