@@ -294,5 +294,6 @@ def test_bench_speed_json(capsys):
     assert air["final_position_error"] < 1e-9 and air["loop_final_position_error"] < 1e-9
     np.testing.assert_allclose(air["gradient"], air["loop_gradient"], rtol=1e-6)
     assert air["shot_events"] == 1 and air["shot_final_position_error"] < 1e-9
+    assert air["shot_forward_us"] > 0 and air["shot_forward_alternating_us"] > 0
     assert set(air["targets"]) == {"forward_ratio", "final_position_error", "gradient_ratio", "shot_forward_us",
                                    "first_call_s"}
