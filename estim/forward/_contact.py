@@ -217,10 +217,12 @@ def first_contact(
     v: Float[Array, "3"],
     a: Float[Array, "3"],
     exclude: Int[Array, ""],
+    also: Int[Array, ""] | int = -1,
 ) -> tuple[Float[Array, ""], Int[Array, ""]]:
     """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.
 
-    ``exclude`` is a face the ball is sliding on (or -1). Faces reached at the same instant
+    ``exclude`` is a face the ball is sliding on (or -1), ``also`` a second one (a wall it
+    slides along, or -1). Faces reached at the same instant
     (to ``TIE_TIME``, 1e-12 s) are resolved in favour of box faces over bevels over corners, so a ball
     landing exactly on a tread edge lands on the tread.
 
@@ -242,7 +244,7 @@ def first_contact(
         for i in range(3)
     )
     ok = finite & (excess <= faces.radius + ON_FACE_TOL)
-    ok = ok & (jnp.arange(tau.shape[0]) != exclude)
+    ok = ok & (jnp.arange(tau.shape[0]) != exclude) & (jnp.arange(tau.shape[0]) != also)
     tau = jnp.where(ok, tau, jnp.inf)
 
     n_faces = tau.shape[0]

@@ -126,6 +126,7 @@ class Step(eqx.Module):
     kind: Int[Array, ""]
     mode: Int[Array, ""]
     support: Int[Array, ""]  # face slid on (SLIDE) or just slid off (FLIGHT), else -1
+    wall: Int[Array, ""]  # a face the sliding ball also slides along (a wall it is pushed into), else -1
     face: Int[Array, ""]  # face hit (STEP_CONTACT), left (STEP_EXIT) or bounced on (STEP_ZENO), else -1
     bound: Int[Array, ""]  # STEP_EXIT: which edge bound, 2 * axis + (0 low, 1 high)
     h: Float[Array, ""]  # step length (a Newton start for STEP_CONTACT and STEP_EXIT)
@@ -158,14 +159,20 @@ class OdeSettings(eqx.Module):
 
 
 def _vector_field(air, gravity, params):
-    """``f(y, args)`` for y = (position, velocity); args = (support normal, sliding): a
-    sliding ball feels only the part of the acceleration along its face."""
+    """``f(y, args)`` for y = (position, velocity); args = (support normal, sliding, wall
+    normal or 0): a sliding ball feels only the part of the acceleration along its face,
+    and, against a wall (a face across its support that it touches), only the part that
+    does not push it into the wall: it slides along both faces while pushed into the wall,
+    and leaves the wall when the rest of the acceleration draws it away. (The field is
+    continuous where the push changes sign.)"""
 
     def f(y, args):
-        n_sup, sliding = args
+        n_sup, sliding, n_wall = args
         v = y[3:]
         a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v)
         a = jnp.where(sliding, a - jnp.dot(a, n_sup) * n_sup, a)
+        push = jnp.dot(a, n_wall)
+        a = jnp.where(push < 0, a - push * n_wall, a)
         return jnp.concatenate([v, a])
 
     return f
@@ -344,12 +351,12 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
     g_vec = jnp.array([0.0, 0.0, -1.0]) * g
     S = settings.max_steps
     none = jnp.int32(-1)
-    empty = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, jnp.int32(0), jnp.asarray(0.0))
+    empty = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, none, jnp.int32(0), jnp.asarray(0.0))
     steps = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), empty)
     y0 = jnp.concatenate([params.position, params.velocity])
     h0 = jnp.minimum(t_end, 1e-3)
-    # carry: iteration, records, t, y, mode, support, pending Zeno face, h, done, steps
-    init = (jnp.int32(0), jnp.int32(0), jnp.asarray(0.0), y0, jnp.int32(FLIGHT), none, none, h0,
+    # carry: iteration, records, t, y, mode, support, wall, pending Zeno face, h, done, steps
+    init = (jnp.int32(0), jnp.int32(0), jnp.asarray(0.0), y0, jnp.int32(FLIGHT), none, none, none, h0,
             jnp.bool_(False), steps)
 
     def cond(c):
@@ -357,11 +364,18 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         return (~done) & (i < S) & (k < S)
 
     def body(c):
-        i, k, t, y, mode, support, pending, h, _, steps = c
+        i, k, t, y, mode, support, wall, pending, h, _, steps = c
         p, v = y[:3], y[3:]
         sliding = mode == SLIDE
         n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(support, 0)), 0.0)
-        args = (n_sup, sliding)
+        # A wall the ball has moved away from (or that an event step left within the slack
+        # of it) is a wall no more: its contacts are searched for again.
+        n_w, h_w = faces.normal_offset(jnp.maximum(wall, 0))
+        wall = jnp.where(sliding & (wall >= 0) & (jnp.dot(n_w, v) <= SPEED_TOL)
+                         & (jnp.dot(n_w, p) - h_w <= settings.slack), wall, -1)
+        on_wall = wall >= 0
+        n_wall = jnp.where(on_wall, n_w, 0.0)
+        args = (n_sup, sliding, n_wall)
         a0 = f(y, args)[3:]
 
         # A Zeno series closed in one piece (tried only after a bounce: a branch, since each
@@ -395,15 +409,19 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
 
         def predict():
             """The next event on the step's parabola, and its time on the RK path."""
-            tau_c, face_c = first_contact(faces, p, v, a0, support)
-            tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v, a0), jnp.inf)
+            tau_c, face_c = first_contact(faces, p, v, a0, support, wall)
+            tau_s = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v, a0), jnp.inf)
+            # Past the end of its wall the ball slides on without it.
+            tau_w = jnp.where(on_wall, slide_exit_time(faces, jnp.maximum(wall, 0), p, v, a0), jnp.inf)
+            exit_face = jnp.where(tau_w < tau_s, wall, support)
+            tau_x = jnp.minimum(tau_s, tau_w)
             contact = (tau_c <= h_try) & (tau_c <= tau_x)
             leaves = (tau_x <= h_try) & ~contact
             tau_e = jnp.where(contact, tau_c, tau_x)
             q_e = p + v * jnp.where(leaves, tau_x, 0.0) + 0.5 * a0 * jnp.where(leaves, tau_x, 0.0) ** 2
-            bound = _exit_bound(faces, support, q_e)
+            bound = _exit_bound(faces, exit_face, q_e)
             ev_kind = jnp.where(contact, STEP_CONTACT, STEP_EXIT)
-            ev_face = jnp.where(contact, face_c, support)
+            ev_face = jnp.where(contact, face_c, exit_face)
             n_g, h_g = _guard(faces, ev_kind, ev_face, bound)
             event = contact | leaves
             tau_ev, miss = jax.lax.cond(
@@ -435,7 +453,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         last = ~event & (h_step >= t_end - t)
         kind = jnp.where(zeno_ok, STEP_ZENO, jnp.where(event, ev_kind, jnp.where(last, STEP_LAST, STEP_PLAIN)))
         rec = Step(
-            kind.astype(jnp.int32), mode, support,
+            kind.astype(jnp.int32), mode, support, wall.astype(jnp.int32),
             jnp.where(zeno_ok, pending, jnp.where(event, ev_face, -1)).astype(jnp.int32),
             # A STEP_ZENO step records in ``bound`` whether the series was cut at t_end (1).
             jnp.where(zeno_ok, z_cut.astype(jnp.int32), bound), jnp.where(zeno_ok, 0.0, h_step),
@@ -447,12 +465,21 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         p1, v1 = y1[:3], y1[3:]
         n_face = face_normal(faces, jnp.maximum(ev_face, 0))
         v_post = jnp.where(kind == STEP_CONTACT, law.contact_velocity(v1, n_face, g_vec, coef), v1)
-        settled = (jnp.abs(jnp.dot(v_post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, g_vec) < 0)
-        wall = sliding & (jnp.abs(jnp.dot(n_face, n_sup)) < AXIS_TOL)
-        mode_c = jnp.where(wall | settled, SLIDE, FLIGHT)
-        support_c = jnp.where(wall, support, jnp.where(settled, ev_face, -1))
-        new_mode = jnp.select([zeno_ok, kind == STEP_CONTACT, kind == STEP_EXIT], [SLIDE, mode_c, FLIGHT], mode)
+        # It slides on the face if it has no normal speed left and is pushed into the face:
+        # by gravity in a vacuum, by gravity and the air here (so a ball that the wind
+        # holds against a wall slides along it, instead of touching it again at every step).
+        a_post = acceleration(air, g, params.radius, params.mass, params.drag_coefficient, params.spin, v_post)
+        settled = (jnp.abs(jnp.dot(v_post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, a_post) < 0)
+        meets_wall = sliding & (jnp.abs(jnp.dot(n_face, n_sup)) < AXIS_TOL)
+        mode_c = jnp.where(meets_wall | settled, SLIDE, FLIGHT)
+        support_c = jnp.where(meets_wall, support, jnp.where(settled, ev_face, -1))
+        # Leaving the wall's face (past its end) keeps the slide on the support.
+        off_wall = (kind == STEP_EXIT) & (ev_face == wall) & on_wall
+        new_mode = jnp.select([zeno_ok, kind == STEP_CONTACT, off_wall, kind == STEP_EXIT],
+                              [SLIDE, mode_c, SLIDE, FLIGHT], mode)
         new_support = jnp.select([zeno_ok, kind == STEP_CONTACT, kind == STEP_EXIT], [pending, support_c, support], support)
+        new_wall = jnp.where((kind == STEP_CONTACT) & meets_wall, ev_face,
+                             jnp.where(zeno_ok | (kind == STEP_EXIT) | (kind == STEP_CONTACT), -1, wall))
         new_pending = jnp.where((kind == STEP_CONTACT) & (mode_c == FLIGHT), ev_face, -1)
         t_new = jnp.where(zeno_ok, t + z_dur, t + h_step)
         y_new = jnp.where(zeno_ok, jnp.concatenate([p + z_travel, z_vel]), jnp.concatenate([p1, v_post]))
@@ -467,6 +494,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
             jnp.where(keep, y_new, y),
             jnp.where(keep, new_mode, mode).astype(jnp.int32),
             jnp.where(keep, new_support, support).astype(jnp.int32),
+            jnp.where(keep, new_wall, wall).astype(jnp.int32),
             jnp.where(keep, new_pending, pending).astype(jnp.int32),
             jnp.where(keep, h_new, h_rej),
             keep & ((kind == STEP_LAST) | (zeno_ok & z_cut)),
@@ -493,7 +521,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         p, v = y[:3], y[3:]
         sliding = st.mode == SLIDE
         n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(st.support, 0)), 0.0)
-        args = (n_sup, sliding)
+        args = (n_sup, sliding, jnp.where(st.wall >= 0, face_normal(faces, jnp.maximum(st.wall, 0)), 0.0))
         is_event = (st.kind == STEP_CONTACT) | (st.kind == STEP_EXIT)
         n_g, h_g = _guard(faces, st.kind, st.face, st.bound)
         # One Newton step at the root found by plan: its value is the root, its derivative
@@ -540,13 +568,13 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
     def idle(carry):
         """What ``apply`` gives for a STEP_UNUSED slot: a step of length 0."""
         t, y = carry
-        a = f(y, (jnp.zeros(3), jnp.bool_(False)))[3:]
+        a = f(y, (jnp.zeros(3), jnp.bool_(False), jnp.zeros(3)))[3:]
         return Node(t, y[:3], y[3:], a, t, y[:3], y[3:], a, y[3:])
 
     # 0 * e, not a constant, for a single trace of the body (see estim.forward._solver.replay).
     init = (0.0 * params.e, jnp.concatenate([params.position, params.velocity]))
     none = jnp.int32(-1)
-    unused = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, jnp.int32(0), jnp.float64(0.0))
+    unused = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, none, jnp.int32(0), jnp.float64(0.0))
     n_used = steps.kind.shape[0] if n_used is None else n_used
     (t1, y1), nodes = scan_used(apply, init, steps, n_used, idle, unused)
     return State(t1, y1[:3], y1[3:]), nodes
