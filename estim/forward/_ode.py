@@ -90,6 +90,7 @@ from ._contact import (
     face_normal,
     faces_for,
     first_contact,
+    inner,
     on_face,
     series_clear,
     slide_exit_time,
@@ -170,8 +171,8 @@ def _vector_field(air, gravity, params):
         n_sup, sliding, n_wall = args
         v = y[3:]
         a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v)
-        a = jnp.where(sliding, a - jnp.dot(a, n_sup) * n_sup, a)
-        push = jnp.dot(a, n_wall)
+        a = jnp.where(sliding, a - inner(a, n_sup) * n_sup, a)
+        push = inner(a, n_wall)  # (written out: a dot would be a library call, estim.forward._contact.inner)
         a = jnp.where(push < 0, a - push * n_wall, a)
         return jnp.concatenate([v, a])
 
@@ -371,8 +372,8 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         # A wall the ball has moved away from (or that an event step left within the slack
         # of it) is a wall no more: its contacts are searched for again.
         n_w, h_w = faces.normal_offset(jnp.maximum(wall, 0))
-        wall = jnp.where(sliding & (wall >= 0) & (jnp.dot(n_w, v) <= SPEED_TOL)
-                         & (jnp.dot(n_w, p) - h_w <= settings.slack), wall, -1)
+        wall = jnp.where(sliding & (wall >= 0) & (inner(n_w, v) <= SPEED_TOL)
+                         & (inner(n_w, p) - h_w <= settings.slack), wall, -1)
         on_wall = wall >= 0
         n_wall = jnp.where(on_wall, n_w, 0.0)
         args = (n_sup, sliding, n_wall)
@@ -468,8 +469,11 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         # It slides on the face if it has no normal speed left and is pushed into the face:
         # by gravity in a vacuum, by gravity and the air here (so a ball that the wind
         # holds against a wall slides along it, instead of touching it again at every step).
-        a_post = acceleration(air, g, params.radius, params.mass, params.drag_coefficient, params.spin, v_post)
-        settled = (jnp.abs(jnp.dot(v_post, n_face)) <= REST_SPEED) & (jnp.dot(n_face, a_post) < 0)
+        # (The acceleration at the end of the step, before the contact: the solver's last
+        # stage. After it the normal speed is at most REST_SPEED, so the air's part barely
+        # changes.)
+        a_end = f(y1, args)[3:]
+        settled = (jnp.abs(inner(v_post, n_face)) <= REST_SPEED) & (inner(n_face, a_end) < 0)
         meets_wall = sliding & (jnp.abs(jnp.dot(n_face, n_sup)) < AXIS_TOL)
         mode_c = jnp.where(meets_wall | settled, SLIDE, FLIGHT)
         support_c = jnp.where(meets_wall, support, jnp.where(settled, ev_face, -1))
