@@ -198,35 +198,13 @@ _INCOMPLETE_ODE = (
 @jit(options=ODE_COMPILE)
 def solve_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
     _ode.TRACE_COUNT += 1
-    batch = params.batch_shape
     # Ball by ball, as on the closed-form path: each ball's step loop is a loop of its own
     # (vectorised over balls, every step of every ball ran the branches of all: the seed's
     # three balls in still air took 21.6 ms instead of 2.4), its replay runs only the steps
-    # it uses (estim.forward._scan), and it writes only the parts it keeps, packed.
-    layouts = []
-
-    def ball(prm):
-        parts = _ode.ball_parts(scene, prm, t_end, ts, settings, max_events, keep)
-        layouts.append(layout_of(parts, 0))
-        rows = pack(parts, layouts[-1])
-        if not checks:
-            return rows
-        # As in solve_closed_form: the ball's first failing input check (1-based), else
-        # len(_INPUT_CHECKS) + 1 if it is left incomplete, else 0. (A ball with bad inputs
-        # still ends: its step loop is bounded by max_steps.)
-        code = _input_code(scene, prm, t_end, ts)
-        return rows + (jnp.where(code > 0, code, jnp.where(parts["complete"], 0, len(_INPUT_CHECKS) + 1)),)
-
-    record, flags, *code = map_balls(ball, flat_params(params))
-    if keep != frozenset(KEEP):  # (as in solve_closed_form)
-        record = keep_loop(record)
-    if checks:  # one check for the whole call (each eqx.error_if is a kernel of its own)
-        messages = list(_INPUT_CHECKS) + [_INCOMPLETE_ODE]
-        first = jnp.min(jnp.where(code[0] > 0, code[0], len(messages) + 1))
-        fails = first <= len(messages)
-        record = eqx.branched_error_if(record, fails, jnp.where(fails, first - 1, 0), messages)
-    return Trajectory(ts=ts, record=record.reshape(batch + record.shape[1:]),
-                      flags=flags.reshape(batch + flags.shape[1:]), gravity=scene.gravity, layout=layouts[-1])
+    # it uses (estim.forward._scan), and it writes only the parts it keeps, packed. (A ball
+    # with bad inputs still ends: its step loop is bounded by max_steps.)
+    return _packed_balls(scene, params, t_end, ts, checks, keep, _INCOMPLETE_ODE,
+                         lambda prm: _ode.ball_parts(scene, prm, t_end, ts, settings, max_events, keep))
 
 
 def _check_effects(scene: Scene, params: Params) -> None:
@@ -270,12 +248,22 @@ def solve_closed_form(scene, params, t_end, ts, max_segments, max_events, checks
     # speed.md). A ball's result does not depend on the other balls of its batch. The loop
     # writes each ball's result as the packed rows of a Trajectory, so that the program is
     # the loop and little else, and returns a few arrays.
+    def parts_of(prm):
+        pl = plan(scene, prm, t_end, max_segments)
+        return ball_parts(scene, prm, t_end, ts, pl, max_events, keep)
+
+    return _packed_balls(scene, params, t_end, ts, checks, keep, _INCOMPLETE, parts_of)
+
+
+def _packed_balls(scene, params, t_end, ts, checks, keep, incomplete: str, parts_of) -> Trajectory:
+    """One ball at a time (``estim.forward._balls.map_balls``): ``parts_of(params)``, the
+    ball's Trajectory parts, packed into its rows; with ``checks``, the argument checks and
+    completion of every ball, raised once for the whole call (``incomplete``: the message
+    of a ball left incomplete)."""
     layouts = []  # the layout of a ball's rows, found while tracing its loop body
-    flat = flat_params(params)
 
     def ball(prm):
-        pl = plan(scene, prm, t_end, max_segments)
-        parts = ball_parts(scene, prm, t_end, ts, pl, max_events, keep)
+        parts = parts_of(prm)
         layouts.append(layout_of(parts, 0))
         rows = pack(parts, layouts[-1])
         if not checks:
@@ -285,7 +273,7 @@ def solve_closed_form(scene, params, t_end, ts, max_segments, max_events, checks
         code = _input_code(scene, prm, t_end, ts)
         return rows + (jnp.where(code > 0, code, jnp.where(parts["complete"], 0, len(_INPUT_CHECKS) + 1)),)
 
-    record, flags, *code = map_balls(ball, flat)
+    record, flags, *code = map_balls(ball, flat_params(params))
     if keep != frozenset(KEEP):  # (check_keep made keep a frozenset)
         # For one ball XLA replaces the loop by its body and drops whatever the caller
         # leaves unused: with every part kept, that is what lets a function of the final
@@ -293,17 +281,16 @@ def solve_closed_form(scene, params, t_end, ts, max_segments, max_events, checks
         # loop: one kernel, where the body is a few dozen (jacfwd of the golf ball's final
         # x, 6 kernels instead of 37; docs/pages/speed.md).
         record = keep_loop(record)
-
-    traj = Trajectory(ts=ts, record=unflat(record), flags=unflat(flags), gravity=g, layout=layouts[-1])
     if checks:
         # One check for the whole call, after the loop (each eqx.error_if is a kernel of
         # its own): the smallest nonzero code of the balls, if any.
-        messages = list(_INPUT_CHECKS) + [_INCOMPLETE]
+        messages = list(_INPUT_CHECKS) + [incomplete]
         first = jnp.min(jnp.where(code[0] > 0, code[0], len(messages) + 1))
         fails = first <= len(messages)
-        record = eqx.branched_error_if(traj.record, fails, jnp.where(fails, first - 1, 0), messages)
-        traj = eqx.tree_at(lambda tr: tr.record, traj, record)
-    return traj
+        record = eqx.branched_error_if(record, fails, jnp.where(fails, first - 1, 0), messages)
+    batch = params.batch_shape
+    return Trajectory(ts=ts, record=record.reshape(batch + record.shape[1:]),
+                      flags=flags.reshape(batch + flags.shape[1:]), gravity=scene.gravity, layout=layouts[-1])
 
 
 # The argument checks of `simulate`, as they run inside a user's jit (outside it, the same
