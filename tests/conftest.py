@@ -11,7 +11,6 @@ Importing estim switches JAX's x64 mode on; every helper computes in float64.
 
 from __future__ import annotations
 
-import contextlib
 import pathlib
 import types
 
@@ -24,6 +23,7 @@ import estim
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 STAIRS_XML = ROOT / "data" / "scenes" / "stairs.xml"
+STAIRS_EXACT_XML = ROOT / "data" / "scenes" / "stairs_exact.xml"
 
 B = 64  # every batched simulation has exactly this many balls (padded)
 NT = 64  # every ``ts`` has exactly this many sample times (padded)
@@ -46,18 +46,13 @@ SEED_T_END = 2.3
 G = 9.81
 
 
-@contextlib.contextmanager
 def jax_path():
     """Run estim's closed-form path on the JAX solver (the path of backends without its
     native kernels, estim.forward._native) instead of the kernels, within the block. Programs
     traced (jitted) before keep the path they were traced with."""
-    from estim.forward import _native
-    was = _native.ENABLED
-    _native.ENABLED = False
-    try:
-        yield
-    finally:
-        _native.ENABLED = was
+    from estim.forward._dispatch import jax_planner
+
+    return jax_planner()
 
 
 def seed_release(scene: estim.Scene, ball: str) -> np.ndarray:
@@ -196,15 +191,23 @@ def jac_args(e, mu_t, radius, position, velocity, t_end, ts=None):
     ), k
 
 
-def l1_depth(position, centre, half):
-    """L1 distance of points (..., 3) from boxes (nb, 3): shape (..., nb)."""
+def box_distance(position, centre, half):
+    """Euclidean distance of points (..., 3) from boxes (nb, 3): shape (..., nb). A ball of
+    radius r is outside a box (exact geometry) where this is at least r."""
     d = np.abs(np.asarray(position)[..., None, :] - np.asarray(centre)) - np.asarray(half)
-    return np.sum(np.maximum(d, 0.0), axis=-1)
+    return np.sqrt(np.sum(np.maximum(d, 0.0) ** 2, axis=-1))
 
 
 @pytest.fixture(scope="session")
 def stairs() -> estim.Scene:
+    """The seed scene, with the seed's geometry (a tread is its faces)."""
     return estim.load_scene(STAIRS_XML)
+
+
+@pytest.fixture(scope="session")
+def stairs_exact() -> estim.Scene:
+    """The seed's staircase with exact edges and corners."""
+    return estim.load_scene(STAIRS_EXACT_XML)
 
 
 @pytest.fixture(scope="session")
@@ -234,7 +237,7 @@ def kit():
         seed_arrays=seed_arrays,
         seed_params=seed_params,
         seed_release=seed_release,
-        l1_depth=l1_depth,
+        box_distance=box_distance,
         SEED_T_END=SEED_T_END,
         SEED_MU=SEED_MU,
         SEED_VX=SEED_VX,

@@ -145,16 +145,16 @@ def test_dense_solution_never_inside_a_solid(windy):
 @pytest.mark.parametrize("delta", [1e-9, 1e-7, 1e-5, -1e-7, -1e-5])
 def test_fall_grazing_a_tread_edge(delta):
     """A ball dropped in still air (quadratic drag only: it falls straight down) with its
-    centre ``r + delta`` beyond the edge of tread 1. With delta > 0 it passes the tread and
-    lands on tread 2; with delta < 0 it meets tread 1's edge region where the L1 excess
-    ``(r + delta) + (z - top)`` reaches r, at ``z = top - delta``. The truth is the closed form
-    of the fall, ``z(t) = z0 - ln cosh(t sqrt(g k)) / k``."""
-    scene = estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml").with_air(Air(density=1.204))
+    centre ``r + delta`` beyond the edge of tread 1 (exact edges). With delta > 0 it passes
+    the tread and lands on tread 2; with delta < 0 it meets tread 1's round edge where its
+    distance from the edge line, ``sqrt((r + delta)^2 + (z - top)^2)``, reaches r. The truth
+    is the closed form of the fall, ``z(t) = z0 - ln cosh(t sqrt(g k)) / k``."""
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "stairs_exact.xml").with_air(Air(density=1.204))
     z0, x = 1.7, 0.3 + RADIUS + delta
     prm = estim.Params(0.8, 0.9, RADIUS, (x, 0.0, z0), (0.0, 0.0, 0.0), mass=MASS, drag_coefficient=0.5)
     traj = estim.simulate(scene, prm, 0.8, max_events=4)
     k = 1.204 * 0.5 * np.pi * RADIUS**2 / (2 * MASS)
-    landing = 1.4 - delta if delta < 0 else 1.2 + RADIUS
+    landing = 1.4 + np.sqrt(RADIUS**2 - (RADIUS + delta) ** 2) if delta < 0 else 1.2 + RADIUS
     t_true = np.arccosh(np.exp(k * (z0 - landing))) / np.sqrt(G * k)
     assert int(traj.events.count) >= 1
     assert abs(float(traj.events.t[0]) - t_true) < 1e-9

@@ -297,3 +297,21 @@ def test_bench_speed_json(capsys):
     assert air["shot_forward_us"] > 0 and air["shot_forward_alternating_us"] > 0
     assert set(air["targets"]) == {"forward_ratio", "final_position_error", "gradient_ratio", "shot_forward_us",
                                    "first_call_s"}
+
+
+def test_simulate_json_events_carry_the_normal_and_the_velocity_after(capsys):
+    """On the staircase with exact edges, a golf ball dropped r/2 beyond step1's top-left
+    edge meets the edge's fillet: the event names the edge, its normal points from the edge
+    to the centre (60 degrees round from the top, closed form), and the velocity after is
+    the reset map of the velocity before about that normal."""
+    scene = str(Path(SCENE).with_name("stairs_exact.xml"))
+    e, mu = 0.5, 0.5
+    assert main(["simulate", "--scene", scene, "--ball", "golf", "--x0", "-0.325", "--z0", "1.6", "--vx0", "0",
+                 "--e", str(e), "--mu-t", str(mu), "--t-end", "0.5", "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out)["events"][0]
+    assert (ev["surface"], ev["face"]) == ("step1", "-x+z")
+    n = np.array([-0.5, 0.0, np.sqrt(3.0) / 2])
+    np.testing.assert_allclose(ev["normal"], n, rtol=0, atol=1e-12)
+    v = np.array([ev["vx"], ev["vy"], ev["vz"]])
+    after = mu * (v - (v @ n) * n) - e * (v @ n) * n
+    np.testing.assert_allclose([ev["after"][k] for k in ("vx", "vy", "vz")], after, rtol=0, atol=1e-12)

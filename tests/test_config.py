@@ -87,10 +87,11 @@ def test_event_loops_compile_to_one_kernel():
     three = flat_params(seed_params(scene))  # the seed's three balls
 
     plan_hlo = jax.jit(lambda p: jax.lax.map(lambda q: plan(scene, q, 2.3, 48), p)).lower(three).compile().as_text()
-    decisions = plan(scene, golf, 2.3, 48).decisions
+    planned = plan(scene, golf, 2.3, 48)
+    decisions, durations = planned.decisions, planned.segments.t1 - planned.segments.t0
 
     def final_x(e):
-        return replay(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3, decisions).p1[-1, 0]
+        return replay(scene, eqx.tree_at(lambda p: p.e, golf, e), 2.3, decisions, durations).p1[-1, 0]
 
     grad_hlo = jax.jit(jax.jacfwd(final_x)).lower(jnp.float64(0.7)).compile().as_text()
 

@@ -3,7 +3,7 @@
 Every case is checked against an independent truth: closed forms worked out by hand in the
 test (Zeno accumulation time and point, ballistic contact times, reset maps), or
 ``Reference2D`` below, a plain-numpy event-by-event simulator that follows every bounce
-one by one (no closed-form sums) in the x-z plane of the seed stairs, bevels included.
+one by one (no closed-form sums) in the x-z plane of the seed stairs, round edges included.
 Gradients (``jax.jacfwd`` of the final position, the event times and the samples with
 respect to e, mu_t and vx0) are compared with closed-form derivatives or with central finite
 differences where the trajectory is smooth in the parameters, and checked finite where it
@@ -22,7 +22,6 @@ single ball): its tolerances are traced, its max_steps and shapes are those of e
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
 from typing import NamedTuple
@@ -36,10 +35,9 @@ from conftest import (
     NT,
     B,
     G,
+    box_distance,
     grad_final_x,
     jac_outputs,
-    jax_path,
-    l1_depth,
     padded_params,
     padded_ts,
 )
@@ -145,6 +143,13 @@ def jacobian(scene, params: estim.Params, t_end, path, ts=None):
 # Helpers
 # ---------------------------------------------------------------------------------------
 
+
+@pytest.fixture(scope="module")
+def stairs(stairs_exact):
+    """The hard cases run on the seed's staircase with exact edges and corners (the seed's
+    own geometry, with no edges, lets balls pass through them)."""
+    return stairs_exact
+
 R = 0.05  # the golf ball of the seed
 E_DEF, MU_DEF = 0.5, 0.9
 
@@ -220,10 +225,10 @@ def central_differences(scene, balls, t_end, path, h=1e-6, ts=None):
 
 def assert_outside(scene, traj, k, r=R):
     """Samples and final states of the first k balls (radius r) lie outside every solid:
-    L1 distance >= r from every box, centre >= r above the ground, to 1e-9 m."""
+    distance >= r from every box, centre >= r above the ground, to 1e-9 m."""
     final = np.asarray(traj.final.position[:k])[:, None, :]
     for pts in (np.asarray(traj.position[:k]), final):
-        depth = l1_depth(pts, scene.box_centre, scene.box_half)
+        depth = box_distance(pts, scene.box_centre, scene.box_half)
         assert np.all(depth >= r - 1e-9), float(np.min(depth - r))
         assert np.all(pts[..., 2] >= r - 1e-9)
 
@@ -256,23 +261,25 @@ def reset(v, n, e, mu):
 
 # ---------------------------------------------------------------------------------------
 # An independent reference: every bounce one by one, in the x-z plane of the seed stairs
-# (balls with y away from the treads' ends). Each tread, grown by r in the L1 norm, has a
-# top, two 45-degree edge bevels and two risers; beyond the last tread is the ground.
+# with exact edges (balls with y away from the treads' ends). Each tread, grown by r, has a
+# top and two risers (lines) and two round edges (quarter circles of radius r about its
+# top corners); beyond the last tread is the ground. Contact times on an edge are the real
+# roots of the quartic |q(t) - corner|^2 = r^2 by numpy's companion-matrix eigenvalues,
+# polished by Newton's method: another method than estim's (estim.forward._curved).
 # ---------------------------------------------------------------------------------------
 
 
 class Face(NamedTuple):
     name: str  # e.g. "step1+x+z"
     solid: str
-    n: np.ndarray  # unit outward normal (x, z)
-    h: float  # the face lies on the plane n . q = h ...
-    a: np.ndarray  # ... between the points a and b
+    n: np.ndarray  # a line's unit outward normal (x, z); an edge's quadrant (+-1, 1)
+    h: float  # a line lies on the plane n . q = h ...
+    a: np.ndarray  # ... between the points a and b; an edge: a is its corner point
     b: np.ndarray
-    rank: int  # 1: top, riser, ground; 2: bevel
+    rank: int  # 1: top, riser, ground; 2: edge
 
 
 def stairs_faces(r):
-    s2 = math.sqrt(2.0)
     faces = [Face("ground", "ground", np.array([0.0, 1.0]), r, np.array([-1e6, r]),
                   np.array([1e6, r]), 1)]
     for k in range(5):
@@ -283,10 +290,8 @@ def stairs_faces(r):
 
         faces += [
             Face(f"{name}+z", name, P(0, 1), top + r, P(lo, top + r), P(hi, top + r), 1),
-            Face(f"{name}+x+z", name, P(1, 1) / s2, (hi + top + r) / s2, P(hi, top + r),
-                 P(hi + r, top), 2),
-            Face(f"{name}-x+z", name, P(-1, 1) / s2, (-lo + top + r) / s2, P(lo - r, top),
-                 P(lo, top + r), 2),
+            Face(f"{name}+x+z", name, P(1, 1), 0.0, P(hi, top), P(hi, top), 2),
+            Face(f"{name}-x+z", name, P(-1, 1), 0.0, P(lo, top), P(lo, top), 2),
             Face(f"{name}+x", name, P(1, 0), hi + r, P(hi + r, top), P(hi + r, -1.0), 1),
             Face(f"{name}-x", name, P(-1, 0), -(lo - r), P(lo - r, -1.0), P(lo - r, top), 1),
         ]
@@ -307,6 +312,43 @@ def _entering(g0, g1, g2, tol=1e-12):
     return tau if tau > 0 and (g1 < 0 or g2 < 0) else math.inf
 
 
+def _edge_entering(f, q, v, acc, r, tol=1e-12):
+    """Smallest tau >= 0 at which the centre enters the circle of radius r about edge f's
+    corner, in its quadrant (inf if never)."""
+    A, B, C = q - f.a, v, 0.5 * acc
+    rho = math.hypot(*A)
+    g0, g1 = rho - r, float(A @ B) / rho
+    g2 = (float(B @ B) + 2.0 * float(A @ C)) / rho - g1 * g1 / rho
+    if abs(g0) <= tol and (g1 < -tol or (abs(g1) <= tol and g2 < -tol)):
+        return 0.0
+    coeffs = [C @ C, 2 * B @ C, B @ B + 2 * A @ C, 2 * A @ B, A @ A - r * r]
+    if coeffs[0] == 0.0:
+        coeffs = coeffs[2:]
+    best = math.inf
+    for z in np.roots(coeffs):
+        if abs(z.imag) > 1e-6 * max(1.0, abs(z.real)):
+            continue
+        t = z.real
+        for _ in range(3):  # Newton on D(t) = |P(t)|^2 - r^2
+            P, dP = A + B * t + C * t * t, B + 2 * C * t
+            slope = 2 * float(P @ dP)
+            if slope != 0:
+                t -= (float(P @ P) - r * r) / slope
+        P, dP = A + B * t + C * t * t, B + 2 * C * t
+        p = f.a + P
+        in_quadrant = f.n[0] * (p[0] - f.a[0]) >= -1e-9 and p[1] - f.a[1] >= -1e-9
+        if t > 1e-12 and float(P @ dP) < 0 and in_quadrant:
+            best = min(best, t)
+    # A hop off the edge too low for the quartic's float64 (estim.forward._contact: 1 nm).
+    if abs(g0) <= tol and g1 > 0 > g2 and g1 * g1 <= -2.0 * g2 * 1e-9:
+        best = min(best, -2.0 * g1 / g2)
+    return best
+
+
+def _normal(f, q, r):
+    return f.n if f.rank == 1 else (q - f.a) / math.hypot(*(q - f.a))
+
+
 def _along(f, q):
     """Distance of q along the face from its end a, and the face's length."""
     d = f.b - f.a
@@ -318,13 +360,12 @@ class Reference2D:
     """The contact model of docs/pages/contact-model.md, one bounce at a time.
 
     Flights are parabolas; the first face entered ends a flight (ties within 1e-9 s go to
-    the lower rank, as rounding makes a tiny rebound at an edge point meet the top and the
-    bevel up to ~1e-12 s apart; at a point where a bevel borders a top or riser of the same tread, the
-    bevel is hit only if the ball enters that face too). A bounce series on a supporting
-    face is followed bounce by bounce until a rebound is slower than 1e-9 m/s, where it
-    settles (tangential velocity kept if mu = 1, else 0) and slides with the tangential
-    part of gravity until it leaves its face. ``events``: (t, x, z, vx-, vz-, vx+, vz+,
-    face name, "impact" | "settle"); ``final``: (t, x, z, vx, vz).
+    the lower rank). A bounce series on a supporting face is followed bounce by bounce
+    until a rebound is slower than 1e-9 m/s, where it settles (tangential velocity kept if
+    mu = 1, else 0) and slides with the tangential part of gravity until it leaves its
+    face. A ball that reaches an edge without normal speed, pressed onto it, would roll
+    over it: the reference stops there (``rolls``), as estim does. ``events``: (t, x, z,
+    vx-, vz-, vx+, vz+, face name, "impact" | "settle"); ``final``: (t, x, z, vx, vz).
     """
 
     def __init__(self, e, mu, x0, z0, vx0, vz0, t_end, r=R, max_events=100_000):
@@ -332,22 +373,26 @@ class Reference2D:
         a = np.array([0.0, -G])
         t, q, v = 0.0, np.array([x0, z0], float), np.array([vx0, vz0], float)
         support, sliding, last = None, False, None
-        self.events = []
+        self.events, self.rolls = [], False
         while len(self.events) < max_events:
             acc = a - (a @ support.n) * support.n if sliding else a
             best, face = math.inf, None
             for f in faces:
                 if f is support:
                     continue
-                g0, g1, g2 = float(f.n @ q - f.h), float(f.n @ v), float(f.n @ acc)
-                # Back onto the face it just bounced off: exactly after 2 g1 / |g2|.
-                tau = -2.0 * g1 / g2 if (f is last and g1 > 0 > g2) else _entering(g0, g1, g2)
+                if f.rank == 2:
+                    tau = _edge_entering(f, q, v, acc, r)
+                else:
+                    g0, g1, g2 = float(f.n @ q - f.h), float(f.n @ v), float(f.n @ acc)
+                    # Back onto the face it just bounced off: exactly after 2 g1 / |g2|.
+                    tau = -2.0 * g1 / g2 if (f is last and g1 > 0 > g2) else _entering(g0, g1, g2)
                 if not tau < math.inf:
                     continue
-                qc, vc = q + v * tau + 0.5 * acc * tau * tau, v + acc * tau
-                s, length = _along(f, qc)
-                if not -1e-9 <= s <= length + 1e-9 or self._blocked(faces, f, qc, vc, acc):
-                    continue
+                qc = q + v * tau + 0.5 * acc * tau * tau
+                if f.rank == 1:
+                    s, length = _along(f, qc)
+                    if not -1e-9 <= s <= length + 1e-9:
+                        continue
                 if tau < best - 1e-9 or (tau <= best + 1e-9 and f.rank < face.rank):
                     best, face = tau, f
             tau_exit = math.inf
@@ -363,13 +408,28 @@ class Reference2D:
                 break
             q, v, t = q + v * tau + 0.5 * acc * tau * tau, v + acc * tau, t + tau
             if tau_exit < best:
-                sliding, last = False, None
+                sliding, last, support = False, None, support
                 continue
-            vn = float(v @ face.n)
-            tangential = v - vn * face.n
-            post = mu * tangential - e * vn * face.n
+            n = _normal(face, q, r)
+            vn = float(v @ n)
+            tangential = v - vn * n
+            post = mu * tangential - e * vn * n
             touch = -vn <= 1e-9  # no impact: the normal velocity is dropped
-            dies = e * -vn <= 1e-9 and float(a @ face.n) < 0  # the series dies out
+            dies = e * -vn <= 1e-9 and float(a @ n) < 0  # the series dies out
+            if face.rank == 2:
+                if touch or dies:
+                    post = tangential * (1.0 if (touch or mu == 1.0) else 0.0)
+                    across = float(post @ post) - float(post @ n) ** 2
+                    if float(a @ n) + across / r < 0:  # pressed onto the edge: it would roll
+                        self.events.append((t, *q, *v, *post, face.name, "settle"))
+                        self.rolls = True
+                        break
+                    self.events.append((t, *q, *v, *post, face.name, "settle"))
+                    v, support, sliding, last = post, face, False, None
+                else:
+                    self.events.append((t, *q, *v, *post, face.name, "impact"))
+                    v, support, sliding, last = post, None, False, face
+                continue
             q = q - (float(face.n @ q) - face.h) * face.n  # exactly on the face's plane
             if touch or dies:
                 post = tangential * (1.0 if (touch or mu == 1.0) else 0.0)
@@ -380,24 +440,15 @@ class Reference2D:
                 v, support, sliding, last = post, None, False, face
         self.final = (t, *q, *v)
 
-    @staticmethod
-    def _blocked(faces, f, q, v, acc, tol=1e-12):
-        for j in faces:
-            if j.solid == f.solid and j.rank < f.rank and abs(float(j.n @ q) - j.h) <= tol:
-                g1, g2 = float(j.n @ v), float(j.n @ acc)
-                if not (g1 < -tol or (abs(g1) <= tol and g2 < 0)):
-                    return True
-        return False
-
     def impacts(self):
         return [x for x in self.events if x[8] == "impact"]
 
 
-def assert_matches_reference(scene, traj, i, ref, tol, n=None):
+def assert_matches_reference(scene, traj, i, ref, tol, n=None, final=True):
     """estim's events of ball i (the first n, default all it lists) are the reference's,
-    in order: time, position, velocities, face (to tol); its final state too. A Zeno series
-    lists only bounces whose flight lasts >= 1 us, then one settle: the reference's
-    bounces are matched by time."""
+    in order: time, position, velocities, face (to tol); its final state too (``final``).
+    A Zeno series lists only bounces whose flight lasts >= 1 us, then one settle: the
+    reference's bounces are matched by time."""
     ours = events(scene, traj, i)[:n]
     ref_t = np.array([x[0] for x in ref.events])
     for t, p, _, post, (solid, label), kind in ours:
@@ -412,12 +463,46 @@ def assert_matches_reference(scene, traj, i, ref, tol, n=None):
         assert x[8] == kind, (x, kind)
         np.testing.assert_allclose(p[[0, 2]], x[1:3], rtol=0, atol=tol)
         np.testing.assert_allclose(post[[0, 2]], x[5:7], rtol=0, atol=max(tol, 1e-8))
+    if not final:
+        return ours
     t_end = float(traj.final.t[i])
     assert ref.final[0] == pytest.approx(t_end, abs=0)
     np.testing.assert_allclose(np.asarray(traj.final.position[i])[[0, 2]], ref.final[1:3],
                                rtol=0, atol=tol)
     np.testing.assert_allclose(np.asarray(traj.final.velocity[i])[[0, 2]], ref.final[3:5],
                                rtol=0, atol=max(tol, 1e-8))
+    return ours
+
+
+def assert_stops_to_roll(scene, params, t_end, path, ref, tol):
+    """Ball 0 reaches an edge without normal speed, pressed onto it, where it would roll
+    over the edge (not modelled): estim reports it incomplete (and simulate raises, saying
+    so), the reference stops there too, and the contacts before are the reference's.
+
+    Every bounce is listed (none is summed: those on an edge are each a segment), so the
+    events pair one to one, however short the flights between them. The ODE path follows
+    the bounces on the edge to its contact slack (a hop lower than 1 um is a touch for it):
+    there the events before the first on an edge pair one to one, and it stops where the
+    reference does, to 1 um."""
+    padded, _ = padded_params(params.e, params.mu_t, params.radius, params.position, params.velocity)
+    traj = simulate(scene, padded, t_end, path, ts=padded_ts(np.linspace(0.0, t_end, NT)), throw=False,
+                    max_events=256)
+    assert ref.rolls and not bool(traj.complete[0])
+    ours = events(scene, traj, 0)
+    first_edge = next(j for j, x in enumerate(ref.events) if x[7].endswith(("x+z", "y+z")))
+    n = len(ref.events) if path == "closed_form" else first_edge
+    assert len(ours) >= n and (path == "ode" or len(ours) == n), (len(ours), len(ref.events))
+    for j, ((t, p, _, post, (solid, label), kind), x) in enumerate(zip(ours[:n], ref.events[:n], strict=True)):
+        assert abs(x[0] - t) <= tol, (t, x)
+        assert x[7] == (solid if label == "plane" else solid + label), (x, label)
+        # (The last contact, where the bounces on the edge die out, estim lists as an impact.)
+        assert x[8] == kind or j == len(ref.events) - 1, (x, kind)
+        np.testing.assert_allclose(p[[0, 2]], x[1:3], rtol=0, atol=tol)
+        np.testing.assert_allclose(post[[0, 2]], x[5:7], rtol=0, atol=max(tol, 1e-8))
+    assert len(ours[-1][4][1]) == 4, ours[-1]  # (on an edge: a label like +x+z)
+    np.testing.assert_allclose(ours[-1][1][[0, 2]], ref.events[-1][1:3], rtol=0, atol=1e-6)
+    with pytest.raises(RuntimeError, match="roll over an edge"):
+        simulate(scene, params, t_end, path)
     return ours
 
 
@@ -479,46 +564,42 @@ def test_zeno_near_a_tread_edge(stairs, path, side):
     """Golf dropped 0.2 m above step1 at vx0 = 0.3, e = 0.5, mu_t = 0.9, placed so that the
     accumulation point lies 0.1 mm before or beyond the tread's edge (x = 0.3).
 
-    before: the whole series is summed; the ball rests 0.1 mm before the edge.
+    before: the whole series is summed; the ball rests 0.1 mm before the edge. Derivatives:
+    closed form.
     beyond: the series is cut after the last bounce that lands on the tread; the next
-    flight meets the edge bevel, a series of bounces on the bevel accumulates there, the
-    ball slides down the bevel, falls to step2 and comes to rest there. Truth: the
-    bounce-by-bounce reference. Derivatives: closed form (before) and central differences
-    (beyond: the trajectory is smooth in (e, mu_t, vx0) there, the bounce count on step1
-    does not change within the step)."""
+    flight meets the round edge, a series of bounces on it accumulates there and the ball
+    comes to rest on the fillet, where it would roll over the edge: not modelled, reported.
+    Truth: the bounce-by-bounce reference."""
     e, mu, u, h = E_DEF, MU_DEF, 0.3, 0.2
     t_fall, w, T0, t_acc = drop(h, e)
     reach = u * (t_fall + mu * T0 / (1 - e * mu))
     x0 = 0.3 - reach + (-1e-4 if side == "before" else 1e-4)
     ball = Ball(e, mu, (x0, 0.0, 1.45 + h), (u, 0.0, 0.0))
     t_end = 1.5
-    traj = run(stairs, params_of([ball]), t_end, path)
     ref = Reference2D(e, mu, x0, 1.45 + h, u, 0.0, t_end)
+    if side == "beyond":
+        # The bounces on step1 whose landing point x_k lies on the tread are all listed
+        # (their flights last >= 1 us), then the edge, bounce after bounce, until the ball
+        # rests on the fillet 0.1 mm beyond the edge and would roll over it.
+        ev = assert_stops_to_roll(stairs, params_of([ball]), t_end, path, ref, TOL[path])
+        labels = [x[4] for x in ev]
+        k = np.arange(60)
+        x_k = x0 + u * (t_fall + mu * T0 * (1 - (e * mu) ** k) / (1 - e * mu))
+        on_tread = int(np.sum(x_k <= 0.3))
+        assert labels[:on_tread] == [("step1", "+z")] * on_tread
+        assert set(labels[on_tread:]) == {("step1", "+x+z")}
+        return
+    traj = run(stairs, params_of([ball]), t_end, path)
     ev = assert_matches_reference(stairs, traj, 0, ref, TOL[path])
     assert_outside(stairs, traj, 1)
     labels = [x[4] for x in ev]
     (_, evt, _), (jfin, jevt, _) = jacobian(stairs, params_of([ball]), t_end, path)
-    if side == "before":
-        assert set(labels) == {("step1", "+z")}
-        assert ev[-1][0] == pytest.approx(t_acc, abs=TOL[path])
-        np.testing.assert_allclose(np.asarray(traj.final.position[0]), [0.3 - 1e-4, 0, 1.45],
-                                   rtol=0, atol=TOL[path])
-        c = 2 * w / G / (1 - e * mu) ** 2
-        assert_jacobian(jfin[0, 0], [u * mu * c, u * e * c, reach / u], DTOL[path], 1e-12)
-        return
-    # Bounces on step1 whose landing point x_k lies on the tread: all of them are listed
-    # (their flights last >= 1 us), then the bevel, a settle on it, then step2.
-    k = np.arange(60)
-    x_k = x0 + u * (t_fall + mu * T0 * (1 - (e * mu) ** k) / (1 - e * mu))
-    on_tread = int(np.sum(x_k <= 0.3))
-    assert labels[:on_tread] == [("step1", "+z")] * on_tread
-    assert labels[on_tread] == ("step1", "+x+z") and ("step1", "+x+z") in labels[on_tread:]
-    assert labels[-1] == ("step2", "+z") and ev[-1][5] == "settle"
-    fd_fin, fd_evt, _ = central_differences(stairs, [ball], t_end, path)
-    # Central differences with h = 1e-6 of a smooth function: error ~1e-9 here.
-    assert_jacobian(jfin[0], fd_fin[0], 1e-5, 1e-7)
-    listed = np.isfinite(evt[0])
-    assert_jacobian(jevt[0][listed], fd_evt[0][listed], 1e-5, 1e-7)
+    assert set(labels) == {("step1", "+z")}
+    assert ev[-1][0] == pytest.approx(t_acc, abs=TOL[path])
+    np.testing.assert_allclose(np.asarray(traj.final.position[0]), [0.3 - 1e-4, 0, 1.45],
+                               rtol=0, atol=TOL[path])
+    c = 2 * w / G / (1 - e * mu) ** 2
+    assert_jacobian(jfin[0, 0], [u * mu * c, u * e * c, reach / u], DTOL[path], 1e-12)
 
 
 @pytest.mark.parametrize("path", PATHS)
@@ -597,8 +678,9 @@ def test_bounces_against_a_riser_with_a_vanishing_vx(stairs, path):
     test took the 1e-188 component of its direction for motion into the riser, and the
     ball spent its 48 segments on single bounces. Truth: the series accumulates at
     t_fall + T0 / (1 - e) at x = 0.95, and with mu_t = 1 and nothing across its path in y
-    the ball keeps vy: y(t) = 0.5 t at every sample."""
-    e, h, t_end = 0.625, 0.21, 2.3
+    the ball keeps vy: y(t) = 0.5 t at every sample (to 1.1 s: at 1.2 s it would reach the
+    tread's side edge slower than sqrt(g r) and roll over it, which estim does not model)."""
+    e, h, t_end = 0.625, 0.21, 1.1
     ball = Ball(e, 1.0, (0.95, 0.0, 1.05 + h), (-5.146940322656966e-189, 0.5, 0.0), 0.05)
     _, _, _, t_acc = drop(h, e)
     ts = np.linspace(0.0, t_end, NT)
@@ -625,15 +707,18 @@ def test_grazing_apex_touches_a_tread_top(stairs, path, offset):
     ball can touch a tread top at its apex (anywhere else over the tread it would have met
     the riser or bevel first).
 
-    offset <= 0: the ball meets the edge bevel at the apex (a tangent touch of the top is
-    not a contact), bounces off it to v+ = (-0.2, 0.7) by the reset map, lands on step1 and
-    comes to rest. offset = +1e-6: it passes 1 um above the edge, lands on the top
-    sqrt(2 offset / g) later with a normal speed of 4.4 mm/s and comes to rest 1.2 mm from
-    the edge. The trajectory jumps between the two (a 45-degree bevel is a crude edge at its
-    upper end). Near the jump (offset = -1e-6, +1e-6) d/d(e, mu_t, vx0) equals central
+    offset <= 0: the ball meets the round edge just before its apex, where the parabola
+    enters the fillet's circle about the edge point (0.3, 1.40) (a tangent touch of the top
+    is not a contact), is reset about the normal from the edge point to its centre, lands
+    on step1 and comes to rest. offset = +1e-6: it passes 1 um above the edge, lands on the
+    top sqrt(2 offset / g) later with a normal speed of 4.4 mm/s and comes to rest 1.2 mm
+    from the edge. Near the jump (offset = -1e-6, +1e-6) d/d(e, mu_t, vx0) equals central
     differences (h = 1e-6 in vx0 moves the apex by 0.15 um along x, which keeps each case on
-    its side); at it (offset = 0) the derivative is the one-sided one of the bevel contact,
-    finite."""
+    its side); at it (offset = 0) the derivative is the one-sided one of the edge contact,
+    finite. At offset = 0 the apex touches the fillet's top, where it meets the top: a
+    double root, where rounding decides whether the ball touches top or fillet (and the
+    reference and estim part ways by one tangential factor mu_t); there the ball only has
+    to stay outside every solid and rest on step1, with finite derivatives."""
     vx0, tau, e, mu = -1.0, 0.15, E_DEF, MU_DEF
     x0, z0 = 0.3 - vx0 * tau, 1.45 + offset - 0.5 * G * tau * tau
     ball = Ball(e, mu, (x0, 0.0, z0), (vx0, 0.0, G * tau))
@@ -641,17 +726,21 @@ def test_grazing_apex_touches_a_tread_top(stairs, path, offset):
     traj = run(stairs, params_of([ball]), t_end, path)
     ev = events(stairs, traj, 0)
     ref = Reference2D(e, mu, x0, z0, vx0, G * tau, t_end)
-    assert_matches_reference(stairs, traj, 0, ref, TOL[path])
+    if offset:
+        assert_matches_reference(stairs, traj, 0, ref, TOL[path])
     assert_outside(stairs, traj, 1)
     t, p, pre, post, face, _ = ev[0]
-    if offset <= 0:
+    if offset == 0:
+        assert face[0] == "step1" and t == pytest.approx(tau, abs=1e-6)
+        assert ev[-1][4] == ("step1", "+z") and float(traj.final.position[0, 2]) == pytest.approx(1.45, abs=1e-12)
+    elif offset < 0:
         assert face == ("step1", "+x+z")
-        # 1e-6 m below the apex the bevel is met 1e-6 s earlier, where vz = 1e-5 m/s.
-        assert t == pytest.approx(tau, abs=2e-6)
-        np.testing.assert_allclose(p[[0, 2]], [0.3, 1.45], rtol=0, atol=2e-6)
-        np.testing.assert_allclose(post, reset(pre, [2**-0.5, 0, 2**-0.5], e, mu), rtol=0,
-                                   atol=1e-12)
-        np.testing.assert_allclose(post, [-0.2, 0.0, 0.7], rtol=0, atol=1e-5)
+        # The fillet is met dt before the apex, where dt^2 + (r - d - g dt^2 / 2)^2 = r^2
+        # (d = -offset, |vx0| = 1): to first order dt = sqrt(2 r d / (1 - g r)).
+        assert t == pytest.approx(tau - math.sqrt(-2 * R * offset / (1 - G * R)), abs=1e-6)
+        n = (p - np.array([0.3, 0.0, 1.4])) / R
+        np.testing.assert_allclose(np.linalg.norm(p - np.array([0.3, p[1], 1.4])), R, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(post, reset(pre, n, e, mu), rtol=0, atol=1e-12)
     else:
         fall = math.sqrt(2 * offset / G)
         w = G * fall
@@ -726,7 +815,7 @@ def test_grazing_centre_passes_exactly_over_a_tread_edge(stairs, path, vx0):
 RELEASES_AT_THE_EDGE = {
     "at rest": (0.0, 0.0, 0.0),
     "sliding off": (1.0, 0.0, 0.0),
-    "sliding onto the tread": (-0.5, 0.0, 0.0),
+    "sliding onto the tread": (-1.0, 0.0, 0.0),
     "thrown up": (0.0, 0.0, 1.0),
 }
 
@@ -737,8 +826,9 @@ def test_release_exactly_at_an_edge(stairs, path, how):
     """Released with its centre exactly at step1's edge point (0.3, 1.45), touching the top
     and the edge bevel at once. at rest: stays (a settle event at t = 0, balanced on the
     edge). sliding off (vx0 = 1): leaves at once, clears the bevel (2 vx0^2 / g > r) and
-    lands on step2 after a 0.2 m fall. sliding onto the tread (vx0 = -0.5): slides across
-    step1 without friction, leaves its far edge at t = 1.2 s, lands on the ground.
+    lands on step2 after a 0.2 m fall. sliding onto the tread (vx0 = -1): slides across
+    step1 without friction, leaves its far edge at t = 0.6 s (faster than sqrt(g r): it flies
+    off the round edge), lands on the ground.
     (Regression: the slide 'entered' the bevel at tau = 0 and bounced off it.) thrown up
     (vz0 = 1): comes back to the edge point 2 / g later, lands on the top, bounces in place
     (Zeno) and rests on the edge."""
@@ -760,10 +850,10 @@ def test_release_exactly_at_an_edge(stairs, path, how):
         assert ev[1][4] == ("step2", "+z") and ev[1][0] == pytest.approx(t2, abs=1e-12)
         np.testing.assert_allclose(ev[1][1], [0.3 + t2, 0.0, 1.25], rtol=0, atol=1e-12)
     elif how == "sliding onto the tread":
-        t2 = 1.2 + math.sqrt(2 * 1.4 / G)
+        t2 = 0.6 + math.sqrt(2 * 1.4 / G)
         assert [x[4] for x in ev[:2]] == [("step1", "+z"), ("ground", "plane")]
         assert ev[1][0] == pytest.approx(t2, abs=1e-12)
-        np.testing.assert_allclose(ev[1][1], [0.3 - 0.5 * t2, 0.0, R], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ev[1][1], [0.3 - t2, 0.0, R], rtol=0, atol=1e-12)
     else:
         t1, T0 = 2.0 / G, 2.0 * e / G  # back at 1 m/s; rebound flights T0, e T0, ...
         assert ev[0][4] == ("step1", "+z") and ev[0][0] == pytest.approx(t1, abs=1e-12)
@@ -781,7 +871,8 @@ def test_release_exactly_at_an_edge(stairs, path, how):
 RESTING = {
     "on a tread": ((0.0, 0.0, 1.45), (0.0, 0.0, 0.0), E_DEF),
     "on the ground": ((3.5, 0.0, R), (0.0, 0.0, 0.0), E_DEF),
-    "sliding on a tread": ((0.0, 0.0, 1.45), (0.5, 0.0, 0.0), E_DEF),
+    "sliding on a tread": ((0.0, 0.0, 1.45), (1.0, 0.0, 0.0), E_DEF),
+    "sliding slowly off a tread": ((0.0, 0.0, 1.45), (0.5, 0.0, 0.0), E_DEF),
     "against a riser": ((0.35, 0.0, 1.30), (0.0, 0.0, 0.0), E_DEF),
     "against a riser, e = 0.8": ((0.35, 0.0, 1.30), (0.0, 0.0, 0.0), 0.8),
 }
@@ -791,8 +882,10 @@ RESTING = {
 @pytest.mark.parametrize("path", PATHS)
 def test_release_resting_on_a_surface(stairs, path, where):
     """Released touching a surface, with no normal velocity. On a tread or the ground at
-    rest: stays exactly (one settle event at t = 0). Sliding on a tread at 0.5 m/s: slides
-    without friction, leaves the edge at 0.6 s, lands on step2 0.2 m lower. Against step1's
+    rest: stays exactly (one settle event at t = 0). Sliding on a tread at 1 m/s: slides
+    without friction, leaves the edge at 0.3 s (faster than sqrt(g r), it flies off the
+    round edge), lands on step2 0.2 m lower. Sliding at 0.5 m/s it would roll over the edge:
+    not modelled, reported (the reference stops there too). Against step1's
     riser (x = 0.3 + r, above step2): falls along the riser without an impact, lands on
     step2 at sqrt(2 * 0.05 / g), bounces in place against the riser and rests at
     t_fall (1 + e) / (1 - e), the series summed in closed form. (Regression: the riser,
@@ -802,6 +895,11 @@ def test_release_resting_on_a_surface(stairs, path, where):
     pos, vel, e = RESTING[where]
     mu, t_end = MU_DEF, 1.0
     ball = Ball(e, mu, pos, vel)
+    if where == "sliding slowly off a tread":
+        ref = Reference2D(e, mu, pos[0], pos[2], vel[0], vel[2], t_end)
+        ev = assert_stops_to_roll(stairs, params_of([ball]), t_end, path, ref, TOL[path])
+        assert ev[-1][4] == ("step1", "+x+z") and ev[-1][0] == pytest.approx(0.6, abs=1e-12)
+        return
     traj = run(stairs, params_of([ball]), t_end, path)
     ev = events(stairs, traj, 0)
     fin = np.asarray(traj.final.position[0])
@@ -810,9 +908,9 @@ def test_release_resting_on_a_surface(stairs, path, where):
         np.testing.assert_allclose(fin, pos, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(np.asarray(traj.final.velocity[0]), [0.0, 0.0, 0.0])
     elif where == "sliding on a tread":
-        t2 = 0.6 + math.sqrt(0.4 / G)
+        t2 = 0.3 + math.sqrt(0.4 / G)
         assert ev[1][4] == ("step2", "+z") and ev[1][0] == pytest.approx(t2, abs=1e-12)
-        np.testing.assert_allclose(ev[1][1], [0.5 * t2, 0.0, 1.25], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ev[1][1], [t2, 0.0, 1.25], rtol=0, atol=1e-12)
     else:
         t1, _, _, t_acc = drop(0.05, e)
         assert ev[0][4] == ("step2", "+z") and ev[0][0] == pytest.approx(t1, abs=1e-12)
@@ -1144,22 +1242,35 @@ def mixed_balls():
 @pytest.mark.parametrize("path", PATHS)
 def test_many_balls_in_one_batch_with_mixed_behaviour(stairs, path):
     """All the cases above in one batch over 2.3 s (Zeno series, slides, rest, grazing,
-    e = 0 and 1, mu_t = 0 and 1, 50 m/s): every ball completes, stays outside every solid,
+    e = 0 and 1, mu_t = 0 and 1, 50 m/s): every ball completes (or stops where it would
+    roll over an edge, its last contact on one: two of them), stays outside every solid,
     never gains energy, and gives the arrays it gives when simulated alone (to BATCH_TOL:
     faces and counts bit for bit, times and states to rounding, conftest.BATCH_ROUNDING)."""
     balls = mixed_balls()
     k = len(balls)
     t_end = 2.3
     ts = np.linspace(0.0, t_end, NT)
-    traj = run(stairs, params_of(balls), t_end, path, ts)
-    assert_outside(stairs, traj, k)
-    e0 = np.array([energy(b.pos, b.vel) for b in balls])
-    smp = energy(traj.position[:k], traj.velocity[:k])
+    padded, _ = padded_params(*(np.array(x, dtype=np.float64) for x in zip(*[(b.e, b.mu, b.r, b.pos, b.vel) for b in balls], strict=True)))
+    traj = simulate(stairs, padded, t_end, path, ts=padded_ts(ts), throw=False)
+    done = np.asarray(traj.complete[:k])
+    assert done.sum() >= k - 2, np.flatnonzero(~done)
+    for i in np.flatnonzero(~done):
+        last = int(traj.events.face[i, int(traj.events.count[i]) - 1])
+        assert len(stairs.face_label(last)[1]) == 4, (i, stairs.face_label(last))
+    ok = np.flatnonzero(done)
+    final = np.asarray(traj.final.position)[ok][:, None, :]
+    for pts in (np.asarray(traj.position)[ok], final):
+        assert np.all(np.min(box_distance(pts, stairs.box_centre, stairs.box_half), axis=-1) >= R - 1e-9)
+        assert np.all(pts[..., 2] >= R - 1e-9)
+    e0 = np.array([energy(b.pos, b.vel) for b in balls])[ok]
+    smp = energy(np.asarray(traj.position)[ok], np.asarray(traj.velocity)[ok])
     assert np.all(np.diff(smp, axis=1) <= 1e-9) and np.all(smp[:, 0] <= e0 + 1e-12)
     for i, b in enumerate(balls):
         alone = simulate(stairs, estim.Params(b.e, b.mu, b.r, b.pos, b.vel), t_end,
                          path, ts=padded_ts(ts), throw=False)
-        assert bool(alone.complete)
+        assert bool(alone.complete) == done[i]
+        if not done[i]:
+            continue
         for a, x in (
             (alone.position, traj.position[i]),
             (alone.velocity, traj.velocity[i]),
@@ -1176,15 +1287,16 @@ def test_many_balls_in_one_batch_with_mixed_behaviour(stairs, path):
 
 
 @pytest.mark.parametrize("path", PATHS)
-def test_ball_wedged_between_a_bevel_and_a_riser(stairs, path):
+def test_ball_wedged_between_an_edge_and_a_riser(stairs, path):
     """A scene built like the stairs (five boxes on the ground, so the same compiled
     program) with a 12.5 cm gap between step2 (x up to 2.3125, top 0.5) and step3 (x from
     2.4375, top 1.0), g = 1 m/s^2 (found by the random-scene property test). A bocce ball
     (r = 0.08, wider than the gap) slides off step2 (e = 0.5, mu_t = 1), bounces off step3's
-    riser onto step2's edge bevel and back: it is wedged, with infinitely many bounces on
-    two faces. estim follows them one segment each and reports the ball incomplete
+    riser onto step2's round edge and back: it may be wedged, with infinitely many bounces
+    on two pieces. estim follows them one segment each: every contact lies outside both
+    solids, and either the ball gets out and stays outside, or it is reported incomplete
     (simulate raises, naming max_segments) instead of returning a wrong answer.
-    (Regression: the bounces on the bevel were summed as one closed-form series without
+    (Regression: the bounces on an edge bevel were summed as one closed-form series without
     looking for obstacles, and the series went 3 mm into step3's riser.)"""
     boxes = {f"step{k + 1}": ((0.0, 0.0, 0.5), (0.5, 1.0, 0.5)) for k in range(5)}
     boxes["step2"] = ((2.1875, 0.0, 0.25), (0.125, 1.0, 0.25))
@@ -1201,10 +1313,9 @@ def test_ball_wedged_between_a_bevel_and_a_riser(stairs, path):
     assert ("step3", "-x") in labels and ("step2", "+x+z") in labels
     # Every event up to where the solver stopped lies outside both solids.
     pts = np.array([x[1] for x in ev])
-    depth = l1_depth(pts, scene.box_centre, scene.box_half)
+    depth = box_distance(pts, scene.box_centre, scene.box_half)
     assert np.all(depth >= 0.08 - 1e-9), float(np.min(depth - 0.08))
     if bool(traj.complete[0]):  # a path that resolves the wedge must keep the ball outside
-        assert path != "closed_form"
         assert_outside(scene, traj, 1, r=0.08)
     else:
         with pytest.raises(RuntimeError, match="max_"):
@@ -1212,27 +1323,33 @@ def test_ball_wedged_between_a_bevel_and_a_riser(stairs, path):
 
 
 @pytest.mark.parametrize("path", PATHS)
-def test_slide_along_the_ridge_of_a_bevel_and_a_corner_face(stairs, path):
-    """Released over step5's far edge (x = 2.7 exactly, where its y-edge bevel meets the
-    corner face), moving along +y, the bocce-sized ball (e = mu_t = 0.25) settles on the
-    bevel of the edge y = 0.6, z = 0.6 and slides down it along the ridge with the corner
-    face (both planes contain the slide direction (0, 1, -1)). It must slide off the
-    bevel and fall to the ground within the 2.3 s: its final z is the ground contact height
-    r = 0.08 (the ball ends on the ground beside step5, y > 0.6 + r)."""
+def test_released_over_a_corner_moving_along_an_edge(stairs, path):
+    """Released over step5's far edge (x = 2.7 exactly), moving along +y towards its corner,
+    the bocce-sized ball (e = mu_t = 0.25) lands on the tread and bounces towards the
+    +y edge and the corner. (With bevels it slid down the ridge of a bevel and a corner face
+    and switched between them forever at one instant.) Its values stay finite; it either
+    ends on the ground beside step5 (z = r, outside it) or stops on an edge or a corner,
+    where it would roll over it, reported so."""
     p, _ = padded_params(0.25, 0.25, 0.08, (2.7, 0.0, 1.845), (0.0, 1.0, 0.5))
     traj = simulate(stairs, p, 2.3, path, ts=padded_ts(np.linspace(0.0, 2.3, NT)), throw=False)
     assert np.all(np.isfinite(np.asarray(traj.final.position[0])))
     assert np.all(np.isfinite(np.asarray(traj.position[0])))
-    assert bool(traj.complete[0])
-    assert float(traj.final.position[0, 2]) == pytest.approx(0.08, abs=1e-9)
-    assert float(traj.final.position[0, 1]) > 0.68
+    if bool(traj.complete[0]):  # on the ground, beside step5
+        q = np.asarray(traj.final.position[0])
+        assert q[2] == pytest.approx(0.08, abs=1e-9)
+        assert np.min(box_distance(q, stairs.box_centre, stairs.box_half)) >= 0.08 - 1e-9
+    else:
+        last = int(traj.events.face[0, int(traj.events.count[0]) - 1])
+        assert len(stairs.face_label(last)[1]) >= 4, stairs.face_label(last)
 
 
 # ---------------------------------------------------------------------------------------
-# Degenerate contacts the closed forms miss (found by an adversarial audit, session 10).
-# Each ball passed through a solid with complete = True. The planner now checks its path
-# (estim.forward._simulate._stays_outside) and reports such a ball incomplete, so simulate raises;
-# resolving the contacts themselves is open (docs/pages/hard-cases.md, "Open").
+# Degenerate contacts (found by an adversarial audit, session 10, against edge bevels, and
+# placed again for round edges). Each ball once passed through a solid with complete = True.
+# The planner checks its path (estim.forward._balls.stays_outside) and reports such a ball
+# incomplete, so simulate raises. With round edges two resolve; the other three end where
+# the ball reaches an edge (or the corner at its end) slower than sqrt(g r), pressed onto
+# it: it would roll over it, which estim does not model yet (docs/pages/hard-cases.md).
 # ---------------------------------------------------------------------------------------
 
 DEGENERATE = {
@@ -1240,72 +1357,59 @@ DEGENERATE = {
         ((0.5, 0.9, 0.05, (0.4 - 1e-12, 0.0, 1.40095), (-1.0, 0.0, 0.981)), 0.5),
     "slides_off_step1_edge_from_1e-12_inside":
         ((0.5, 0.9, 0.05, (0.3 - 1e-12, 0.0, 1.45), (1e-9, 0.0, 0.0)), 3.0),
-    "series_on_step5_y_edge_bevel_r_0.5":
-        ((0.5, 0.9, 0.5, (2.4, 0.6, 1.1), (0.0, 0.001, 0.0)), 2.0),
+    "series_on_step5_y_edge_r_0.5":
+        ((0.5, 0.9, 0.5, (2.55, 0.6, 1.1), (0.0, 0.001, 0.0)), 2.0),
     "dropped_touching_step5_vertical_edge_r_1/16":
-        ((0.3, 0.0, 0.0625, (2.73125, 0.63125, 0.1125), (0.0, 0.0, 0.0)), 3.0),
+        ((0.3, 0.0, 0.0625, (2.7 + 0.0625 / 2**0.5, 0.6 + 0.0625 / 2**0.5, 0.1125), (0.0, 0.0, 0.0)), 3.0),
     "slides_along_step1_edge_ridge_to_its_corner":
         ((0.5, 0.9, 0.05, (-0.3, 0.0, 1.45), (0.0, 0.5, 0.0)), 3.0),
 }
+RESOLVED = ("apex_grazes_step1_top_1e-12_inside_its_edge", "dropped_touching_step5_vertical_edge_r_1/16")
 
 
-def _degenerate(stairs, case, native=True, **kwargs):
+def _degenerate(stairs, case, **kwargs):
     args, t_end = DEGENERATE[case]
     ts = np.linspace(0.0, t_end, 601)
-    with contextlib.nullcontext() if native else jax_path():
-        return estim.simulate(stairs, estim.Params(*args), t_end, ts=ts, **kwargs), args[2]
+    return estim.simulate(stairs, estim.Params(*args), t_end, ts=ts, **kwargs), args[2]
 
 
 def _outside(stairs, traj, r) -> bool:
     q = np.asarray(traj.position)
-    depth = np.min(l1_depth(q, stairs.box_centre, stairs.box_half), axis=-1)
+    depth = np.min(box_distance(q, stairs.box_centre, stairs.box_half), axis=-1)
     return bool(np.all(depth >= r - 1e-9) and np.all(q[..., 2] >= r - 1e-9))
 
 
-@pytest.mark.parametrize("native", [True, False], ids=["kernel", "jax"])
 @pytest.mark.parametrize("case", DEGENERATE)
-def test_degenerate_contacts_never_pass_through_silently(stairs, case, native):
+def test_degenerate_contacts_never_pass_through_silently(stairs, case):
     """Either the ball stays outside every solid at every sample, or it is reported
-    incomplete and simulate raises, saying why (on the native kernel and on the JAX path)."""
-    traj, r = _degenerate(stairs, case, native, throw=False)
+    incomplete and simulate raises, saying why."""
+    traj, r = _degenerate(stairs, case, throw=False)
     if bool(np.asarray(traj.complete)):
         assert _outside(stairs, traj, r)
     else:
-        with pytest.raises(RuntimeError, match="entered a solid"):
-            _degenerate(stairs, case, native)
+        with pytest.raises(RuntimeError, match="roll over an edge"):
+            _degenerate(stairs, case)
 
 
-# Resolved on each path. The r = 0.5 ball on a bevel is followed bounce by bounce, and each
-# bounce carries the rounding of the last: the kernel (whose log, expm1 and pow are the C
-# library's) and the JAX path part at the 9th bounce, by 4e-17 s. On the kernel the ball
-# then settles on the bevel, slides down it and comes to rest on the ground; on the JAX
-# path it meets step4's edge and is reported incomplete. Which one happens is decided by
-# rounding, not by a treatment of the degenerate contact (docs/pages/hard-cases.md).
-RESOLVED = {
-    True: ("apex_grazes_step1_top_1e-12_inside_its_edge", "series_on_step5_y_edge_bevel_r_0.5"),
-    False: ("apex_grazes_step1_top_1e-12_inside_its_edge",),
-}
-
-
-@pytest.mark.parametrize("native", [True, False], ids=["kernel", "jax"])
 @pytest.mark.parametrize("case", DEGENERATE)
-def test_degenerate_contacts_are_resolved(stairs, case, native, request):
-    if case not in RESOLVED[native]:
+def test_degenerate_contacts_are_resolved(stairs, case, request):
+    if case not in RESOLVED:
         request.applymarker(pytest.mark.xfail(
-            strict=True, reason="open: the closed forms miss this degenerate contact (hard-cases.md)"))
-    traj, r = _degenerate(stairs, case, native, throw=False)
+            strict=True, reason="open: the ball would roll over an edge or a corner (hard-cases.md)"))
+    traj, r = _degenerate(stairs, case, throw=False)
     assert bool(np.asarray(traj.complete)) and _outside(stairs, traj, r)
 
 
 def test_grazing_apex_at_a_tread_edge_is_a_contact(stairs):
     """Flights whose apex touches a tread top (to -1e-13 ... +1e-16 m of top + r) 1e-12 to
-    1e-6 m inside its edge, towards the tread, slow and fast, at step1's two edges and
-    step4's: each meets the edge bevel there. Before, the ball reached the bevel rising at
-    ~1e-11 m/s, which read as leaving the top, so the bevel was dropped; the top itself has
-    no root (a tangent), and the ball flew through the tread (56 of these 192 balls passed
-    through it in one flight, 82 more were caught as incomplete)."""
+    1e-6 m inside its edge, towards the tread, at 1 and 10 m/s, at step1's two edges and
+    step4's: faster than sqrt(g r), each passes over the round edge (its parabola is
+    flatter than the fillet; an apex 1e-13 m low may touch it without normal speed) and
+    lands on the top at its apex (to 2e-5 s: after a graze of the fillet, a micrometre hop).
+    (With edge bevels, the ball once reached the bevel rising at ~1e-11 m/s, which read as
+    leaving the top, and flew through the tread: 56 of these 192 balls.)"""
     r, g = 0.05, G
-    pos, vel, expect = [], [], []
+    pos, vel, apex = [], [], []
     for edge, side, top in ((0.3, -1.0, 1.4), (-0.3, 1.0, 1.4), (2.1, -1.0, 0.8)):
         for d in (1e-12, 1e-10, 1e-8, 1e-6):
             for dh in (-1e-13, -5e-14, 0.0, 1e-16):
@@ -1314,14 +1418,22 @@ def test_grazing_apex_at_a_tread_edge_is_a_contact(stairs):
                         v = side * speed
                         pos.append((edge + side * d - v * ta, 0.0, top + r + dh - g * ta * ta / 2))
                         vel.append((v, 0.0, g * ta))
-                        expect.append(ta - d / speed)  # crossing the edge's line, d before the apex
+                        apex.append(ta)
     ts = np.linspace(0.0, 0.6, 601)
     traj = estim.simulate(stairs, estim.Params(0.5, 0.9, r, np.array(pos), np.array(vel)), 0.6, ts=ts)
     q = np.asarray(traj.position)
-    depth = np.min(l1_depth(q, stairs.box_centre, stairs.box_half), axis=-1)
+    depth = np.min(box_distance(q, stairs.box_centre, stairs.box_half), axis=-1)
     assert np.all(depth >= r - 1e-9), float(np.min(depth - r))
     assert np.all(q[..., 2] >= r - 1e-9)
-    # Each ball's first contact is on the edge bevel where the flight crosses the edge's
-    # line, d / speed before its apex (the bevel's plane is within 5e-12 m of the apex
-    # height there).
-    np.testing.assert_allclose(np.asarray(traj.events.t)[:, 0], expect, rtol=0, atol=1e-9)
+    assert np.all(np.asarray(traj.complete))
+    # The first landing on the top is at the apex; before it (apexes 1e-13 m below the
+    # fillet's top) at most a graze of the fillet, near the apex (vertical speed below 1e-4 m/s;
+    # the factor law still scales the tangential velocity by mu_t there).
+    ev = traj.events
+    for i in range(len(apex)):
+        labels = [stairs.face_label(int(f))[1] for f in np.asarray(ev.face[i])[: int(ev.count[i])]]
+        k = labels.index("+z")
+        assert all(lab in ("+x+z", "-x+z") for lab in labels[:k]), labels
+        pre = np.asarray(ev.velocity_pre[i, :k])
+        assert np.all(np.abs(pre[:, 2]) <= 1e-4), (i, pre)
+        assert float(ev.t[i, k]) == pytest.approx(apex[i], abs=2e-5)

@@ -17,12 +17,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOT, jax_path, l1_depth
+from conftest import ROOT, box_distance, jax_path
 
 import estim
 from estim.forward import _native
 from estim.forward._simulate import flat_params
 from estim.forward._solver import plan as jax_plan
+from estim.forward.laws import FactorLaw
 
 # Rounding: the kernel evaluates every closed form in the order the JAX code writes it,
 # but its log, expm1 and pow are the C library's, not XLA's (which differ in the last
@@ -54,21 +55,32 @@ def balls_in(scene: estim.Scene, n: int, seed: int) -> estim.Params:
     vel = rng.normal(0.0, 2.0, (n, 3)) * rng.choice([0.0, 0.3, 1.0, 5.0], (n, 1))
     e = np.where(rng.random(n) < 0.15, rng.choice([0.0, 1.0], n), rng.uniform(0, 1, n))
     mu = np.where(rng.random(n) < 0.2, 1.0, rng.uniform(0, 1, n))
-    depth = np.min(l1_depth(pos, scene.box_centre, scene.box_half), axis=-1, initial=np.inf)
+    depth = np.min(box_distance(pos, scene.box_centre, scene.box_half), axis=-1, initial=np.inf)
     height = np.min(pos @ np.asarray(scene.plane_normal).T - np.asarray(scene.plane_offset), axis=-1, initial=np.inf)
     ok = (depth > r + 1e-6) & (height > r + 1e-6)
     return estim.Params(e[ok], mu[ok], r[ok], pos[ok], vel[ok])
 
 
+# The kernels run the seed's geometry (a box is its faces; exact edges run on the JAX
+# planner): the seed scene declares it, the others are given it.
 SCENES = {
     "stairs": lambda: estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml"),
-    "drop": lambda: estim.load_scene(ROOT / "data" / "scenes" / "drop.xml"),
+    "drop": lambda: estim.load_scene(ROOT / "data" / "scenes" / "drop.xml").with_geometry("seed"),
     "yard": lambda: estim.Scene.from_arrays(
         boxes={"wall": ((3.1, 0.0, 0.5), (0.1, 2.0, 0.5)), "block": ((1.0, 0.5, 0.25), (0.25, 0.25, 0.25))},
         planes={"ground": ((0.0, 0.0, 1.0), 0.0), "side": ((0.0, -1.0, 0.0), -1.5)},
-        gravity=9.81,
+        gravity=9.81, geometry="seed",
     ),
 }
+
+
+def test_exact_geometry_runs_on_the_jax_planner():
+    """A scene with exact edges is not the kernels' (it runs on the JAX planner), and the
+    kernels' own entry point refuses it, saying why."""
+    exact = estim.load_scene(ROOT / "data" / "scenes" / "stairs_exact.xml")
+    assert not _native.supports(FactorLaw(), exact) and not _native.runs(exact)
+    with pytest.raises(ValueError, match="the seed's geometry"):
+        _native.plan(exact, estim.Params(0.5, 0.9, 0.05, (0.0, 0.0, 1.6), (1.0, 0.0, 0.0)), 1.0, 16)
 
 
 @pytest.fixture(scope="module", params=list(SCENES))

@@ -66,18 +66,45 @@ def test_load_stairs(stairs):
         stairs.ball("tennis")
 
 
-def test_face_table(stairs):
-    labels = [stairs.face_label(f) for f in range(stairs.n_faces)]
+def test_face_table(stairs, stairs_exact):
+    """Exact geometry: every box's 6 faces, 12 edges and 8 corners, flat faces first, less
+    those the ground covers; the seed's geometry (stairs.xml): the faces only."""
+    labels = [stairs_exact.face_label(f) for f in range(stairs_exact.n_faces)]
     assert len(set(labels)) == len(labels)
     for k in range(1, 6):
         assert (f"step{k}", "+z") in labels
         assert (f"step{k}", "+x") in labels and (f"step{k}", "+x+z") in labels
-        # Every tread stands on the ground: its bottom faces can never be reached.
+        # Every tread stands on the ground: its bottom pieces can never be reached.
         assert not any(s == f"step{k}" and "-z" in lab for s, lab in labels)
         # 26 directions minus the 9 with m_z = -1.
         assert sum(s == f"step{k}" for s, _ in labels) == 17
-    assert labels[-1] == ("ground", "plane")
-    assert stairs.n_faces == 5 * 17 + 1
+    flat = [len(lab) == 2 or lab == "plane" for _, lab in labels]
+    assert flat == sorted(flat, reverse=True)  # flat faces first
+    assert labels[sum(flat) - 1] == ("ground", "plane")
+    assert stairs_exact.n_faces == 5 * 17 + 1
+    assert stairs_exact.geometry == "exact" and stairs.geometry == "seed"
+    seed = [stairs.face_label(f) for f in range(stairs.n_faces)]
+    assert seed == [x for x, f in zip(labels, flat, strict=True) if f]  # 5 faces per tread, the ground
+    assert stairs.n_faces == 5 * 5 + 1
+
+
+def test_declared_geometry(tmp_path):
+    """A scene declares its geometry in MJCF (<custom><text name="estim:geometry">); an
+    unknown one is an error naming it; from_arrays and with_geometry take it too."""
+    body = f"""    {GROUND}
+    <geom name="block" type="box" pos="1 0 0.25" size="0.5 0.25 0.25"/>
+    {BALL}"""
+    exact = estim.load_scene(write(tmp_path, body))
+    assert exact.geometry == "exact" and exact.n_faces == 17 + 1
+    custom = '<custom><text name="estim:geometry" data="seed"/></custom>'
+    seed = estim.load_scene(write(tmp_path, body, option=custom))
+    assert seed.geometry == "seed" and seed.n_faces == 5 + 1
+    assert exact.with_geometry("seed").n_faces == seed.n_faces
+    bad = '<custom><text name="estim:geometry" data="bevel"/></custom>'
+    with pytest.raises(ValueError, match="data='bevel'> declares an unknown contact geometry"):
+        estim.load_scene(write(tmp_path, body, option=bad))
+    with pytest.raises(ValueError, match="unknown contact geometry"):
+        estim.Scene.from_arrays({"b": ((0, 0, 0), (1, 1, 1))}, geometry="round")
 
 
 # ---------------------------------------------------------------------------------------
@@ -227,13 +254,18 @@ def test_simulate_rejects_bad_ts(stairs):
     [
         ((0.6, 0.0, 1.0), "step2"),  # deep inside the tread
         ((0.0, 0.0, 1.42), "step1"),  # centre above the top, but closer than r = 0.05
-        ((-0.32, 0.0, 1.42), "step1"),  # in the bevel of the top-left edge (L1 0.04 < r)
+        ((-0.32, 0.0, 1.42), "step1"),  # 0.028 m from the top-left edge (< r)
         ((5.0, 0.0, 0.01), "ground"),  # sunk into the ground plane
     ],
 )
-def test_simulate_rejects_ball_inside_a_solid(stairs, position, solid):
+def test_simulate_rejects_ball_inside_a_solid(stairs, stairs_exact, position, solid):
+    """A ball closer than r to a solid: on the exact staircase, and on the seed's (whose
+    treads have no edges) unless it overlaps only an edge."""
     with pytest.raises(ValueError, match=f"inside '{solid}'"):
-        estim.simulate(stairs, estim.Params(**{**GOOD, "position": position}), 1.0)
+        estim.simulate(stairs_exact, estim.Params(**{**GOOD, "position": position}), 1.0)
+    if position[0] != -0.32:
+        with pytest.raises(ValueError, match=f"inside '{solid}'"):
+            estim.simulate(stairs, estim.Params(**{**GOOD, "position": position}), 1.0)
 
 
 def test_simulate_rejects_wrong_types(stairs):

@@ -18,11 +18,11 @@ from conftest import (
     B,
     G,
     assert_complete,
+    box_distance,
     evaluate,
     grad_final_x,
     jac_args,
     jac_outputs,
-    l1_depth,
     run,
     seed_arrays,
     seed_release,
@@ -615,7 +615,8 @@ def test_energy_never_increases(stairs):
     assert np.mean(energy[:, -1] < e0 - 1e-3) > 0.5
 
 
-def test_thrown_up_the_stairs_hits_a_riser(stairs):
+def test_thrown_up_the_stairs_hits_a_riser(stairs_exact):
+    stairs = stairs_exact
     """Released above step3 moving -x at 2 m/s: it hits the riser of step2 (its +x face,
     x = 0.9 + r), vx flips to -e vx, vz scales by mu_t; it never ends inside a solid."""
     e, mu, r = 0.7, 0.9, 0.05
@@ -639,7 +640,7 @@ def test_thrown_up_the_stairs_hits_a_riser(stairs):
         float(ev.position[0, 0, 2]), 1.2 - 0.5 * G * t * t, rtol=0, atol=1e-12
     )
     for p in (np.asarray(traj.final.position[0]), *np.asarray(traj.position[0])):
-        assert np.min(l1_depth(p, stairs.box_centre, stairs.box_half)) >= r - 1e-9
+        assert np.min(box_distance(p, stairs.box_centre, stairs.box_half)) >= r - 1e-9
         assert p[2] >= r - 1e-9
 
 
@@ -681,26 +682,29 @@ def test_dense_output(stairs, seed_traj):
     np.testing.assert_allclose(np.asarray(p[1, 0]), expect, rtol=0, atol=1e-12)
 
 
-def test_slide_off_a_bevel_then_fall(stairs):
-    """Golf, e = 0, mu_t = 0.5, dropped from rest at (-0.325, 0, 1.6) onto step1's top-left
-    edge bevel: sticks (e = 0), slides 0.025 sqrt(2) m down the 45-degree bevel to its
-    lower end (-0.35, 1.4), falls freely past the riser and sticks on the ground (closed
-    form below). Regression (bug in ab16d34): after the slide exits the bevel the next
-    flight 'entered' the same bevel at tau = 0, forever, until max_segments ran out and
-    simulate raised."""
-    r = 0.05
-    traj = run(stairs, 0.0, 0.5, r, (-0.325, 0.0, 1.6), (0.0, 0.0, 0.0), 1.0)
-    t_land = math.sqrt(2 * (1.6 - (1.4 + r - 0.025)) / G)  # bevel: (-x - 0.3) + (z - 1.4) = r
-    t_slide = math.sqrt(2 * (0.025 * math.sqrt(2)) / (G / math.sqrt(2)))
-    u = G / math.sqrt(2) * t_slide / math.sqrt(2)  # |vx| = |vz| at the bevel's lower end
-    t_fall = (-u + math.sqrt(u * u + 2 * G * (1.4 - r))) / G
-    x_ground = -0.35 - u * t_fall
-    assert t_land + t_slide + t_fall < 1.0
+def test_drop_onto_an_edge_bounces_off_along_its_normal(stairs_exact):
+    """Golf, e = 0.5, mu_t = 0.5, dropped from rest at (-0.325, 0, 1.6), r/2 beyond step1's
+    top-left edge (x = -0.3, z = 1.4): it meets the edge's fillet 60 degrees round from the
+    top, where (x + 0.3)^2 + (z - 1.4)^2 = r^2, is reset about the normal from the edge to
+    its centre, flies up and away past the riser and lands on the ground (closed forms)."""
+    r, e, mu = 0.05, 0.5, 0.5
+    traj = run(stairs_exact, e, mu, r, (-0.325, 0.0, 1.6), (0.0, 0.0, 0.0), 1.0)
     assert_complete(traj, 1)
-    np.testing.assert_allclose(
-        np.asarray(traj.final.position[0]), [x_ground, 0.0, r], rtol=0, atol=1e-9
-    )
-    np.testing.assert_array_equal(np.asarray(traj.final.velocity[0]), [0.0, 0.0, 0.0])
+    ev = traj.events
+    z_c = 1.4 + math.sqrt(r * r - 0.025**2)
+    t_c = math.sqrt(2 * (1.6 - z_c) / G)
+    n = np.array([-0.025, 0.0, z_c - 1.4]) / r
+    v = np.array([0.0, 0.0, -G * t_c])
+    post = mu * (v - (v @ n) * n) - e * (v @ n) * n
+    assert stairs_exact.face_label(int(ev.face[0, 0])) == ("step1", "-x+z")
+    np.testing.assert_allclose(float(ev.t[0, 0]), t_c, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(ev.position[0, 0]), [-0.325, 0.0, z_c], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(ev.velocity_post[0, 0]), post, rtol=0, atol=1e-12)
+    # Then a parabola to the ground, z = r.
+    t_g = (post[2] + math.sqrt(post[2] ** 2 + 2 * G * (z_c - r))) / G
+    assert stairs_exact.face_label(int(ev.face[0, 1])) == ("ground", "plane")
+    np.testing.assert_allclose(float(ev.t[0, 1]), t_c + t_g, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(float(ev.position[0, 1, 0]), -0.325 + post[0] * t_g, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("air", [False, True], ids=["closed_form", "ode"])

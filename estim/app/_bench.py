@@ -21,7 +21,7 @@ from .. import _config
 from .._json import dump
 from ..fitting._job import fit_csv, fit_files, fit_pixels
 from ..forward import _ode
-from ..forward._dispatch import NATIVE, path
+from ..forward._dispatch import NATIVE, jax_planner, path
 from ..forward._ode import OdeSettings
 from ..forward._simulate import simulate, solve_closed_form, solve_ode
 from ..forward._trajectory import check_keep
@@ -261,9 +261,41 @@ def run_speed(*, batch: int = 10_000, repeats: int = 200, scene_path: str | None
         # built at install, not switched off with ESTIM_NATIVE=0, JAX's backend is the CPU.
         "native": path(scene) == NATIVE,
     }
+    result["exact"] = run_exact_speed(scene, scene_path, repeats)
     if air:
         result["air"] = run_air_speed(repeats=min(repeats, 100))
     return result
+
+
+# The seed forward on the same staircase with exact edges and corners (the issue of exact
+# geometry): within 1.5 times the seed scene's forward, in the same process.
+EXACT_TARGET = 1.5
+
+
+def run_exact_speed(scene, scene_path: str, repeats: int) -> dict:
+    """The seed forward (3 balls, jitted) on ``stairs_exact.xml`` (the JAX planner: the native
+    kernels have no edges) against the same on the seed scene, on its path (the kernels)
+    and on the JAX planner, timed in alternating rounds in this process."""
+    exact = load_scene(os.path.join(os.path.dirname(scene_path), "stairs_exact.xml"))
+    t_end = SEED["t_end"]
+    three = seed_params(scene)
+    seed = jax.jit(lambda p: simulate(scene, p, t_end))
+    on_exact = jax.jit(lambda p: simulate(exact, p, t_end))
+    seed_jax = jax.jit(lambda p: simulate(scene, p, t_end))
+    with jax_planner():  # traced here, it keeps that path
+        jax.block_until_ready(seed_jax(three))
+    us = _alternating_us({"seed": lambda: seed(three), "exact": lambda: on_exact(three),
+                          "seed_jax": lambda: seed_jax(three)}, max(repeats // 2, 5))
+    return {"seed_us": us["seed"], "seed_jax_us": us["seed_jax"], "exact_us": us["exact"],
+            "ratio": us["exact"] / us["seed"], "ratio_jax": us["exact"] / us["seed_jax"],
+            "target": EXACT_TARGET, "met": bool(us["exact"] / us["seed"] <= EXACT_TARGET)}
+
+
+def format_exact_speed(x: dict) -> str:
+    return (f"exact geometry (stairs_exact.xml, JAX planner), seed forward 3 balls: {x['exact_us']:.1f} us/call "
+            f"against {x['seed_us']:.1f} us on stairs.xml ({x['ratio']:.2f}x; target <= {x['target']:g}x: "
+            f"{'met' if x['met'] else 'NOT met'}) and {x['seed_jax_us']:.1f} us on stairs.xml on the JAX planner "
+            f"({x['ratio_jax']:.2f}x)")
 
 
 def format_speed(r: dict) -> str:
@@ -303,6 +335,8 @@ def format_speed(r: dict) -> str:
         f"programs run on the calling thread: {'yes' if r['machine'].get('sync_dispatch') else 'NO'}; "
         f"native kernels: {'yes' if r['machine'].get('native') else 'NO (the JAX planner)'}",
     ]
+    if "exact" in r:
+        lines += ["", format_exact_speed(r["exact"])]
     if "air" in r:
         lines += ["", format_air_speed(r["air"])]
     return "\n".join(lines)

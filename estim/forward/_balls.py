@@ -64,16 +64,28 @@ def ball_parts(scene: Scene, prm: Params, t_end, ts, pl: Plan, max_events: int, 
     return trajectory_parts(pos, vel, events, final, complete, solution, keep)
 
 
-def inside(xp, scene: Scene, p, r):
-    """Which solids balls of centres ``p (n, 3)`` and radii ``r (n,)`` start inside (deeper
-    than ``INSIDE_DEPTH``, 1 nm): ``(n, boxes)`` and ``(n, planes)`` booleans. A box's points within r of the
-    ball's centre: the L1 excess of the centre over the box's half sizes, as in the contact
-    table (estim.model._scene, eq. (1))."""
+def inside(xp, scene: Scene, p, r, path: bool = False):
+    """Which solids balls of centres ``p (n, 3)`` and radii ``r (n,)`` are inside (deeper
+    than ``INSIDE_DEPTH``, 1 nm): ``(n, boxes)`` and ``(n, planes)`` booleans. A box is
+    entered where the centre is closer than r to it, in the scene's geometry
+    (``estim.model._scene``): the Euclidean distance from the box for exact geometry; for
+    the seed's, the distance beyond one face only (a centre beyond two or three faces at
+    once is off the box's edges and corners, which that geometry does not have). Along a
+    path (``path``) the seed's geometry lets a ball pass a box's corner and overlap the face
+    beyond it, as the seed does; there only a centre inside the box itself is inside."""
     c, h = xp.asarray(scene.box_centre), xp.asarray(scene.box_half)
-    depth = xp.sum(xp.maximum(xp.abs(p[:, None, :] - c[None]) - h[None], 0.0), axis=-1)
+    gap = xp.abs(p[:, None, :] - c[None]) - h[None]
+    excess = xp.maximum(gap, 0.0)
+    if scene.geometry == "exact":
+        box = xp.sqrt(xp.sum(excess * excess, axis=-1)) < r[:, None] - INSIDE_DEPTH
+    elif path:
+        box = xp.max(gap, axis=-1) < -INSIDE_DEPTH
+    else:
+        beyond = xp.sum((excess > 0).astype(excess.dtype), axis=-1)
+        box = (beyond <= 1) & (xp.sum(excess, axis=-1) < r[:, None] - INSIDE_DEPTH)
     n, s = xp.asarray(scene.plane_normal), xp.asarray(scene.plane_offset)
     height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim.forward._contact.inner)
-    return depth < r[:, None] - INSIDE_DEPTH, height < s[None] + r[:, None] - INSIDE_DEPTH
+    return box, height < s[None] + r[:, None] - INSIDE_DEPTH
 
 
 def stays_outside(scene: Scene, radius, decisions, segments, n_segments):
@@ -91,7 +103,7 @@ def stays_outside(scene: Scene, radius, decisions, segments, n_segments):
     points = jnp.stack([s.p0, middle, s.p1], axis=1).reshape(-1, 3)
     used = jnp.repeat(jnp.arange(s.t0.shape[0]) < n_segments, 3)
     r = jax.lax.stop_gradient(radius)
-    inside_box, inside_plane = inside(jnp, scene, points, jnp.broadcast_to(r, used.shape))
+    inside_box, inside_plane = inside(jnp, scene, points, jnp.broadcast_to(r, used.shape), path=True)
     into = jnp.any(inside_box, axis=1) | jnp.any(inside_plane, axis=1)
     return ~jnp.any(used & into)
 

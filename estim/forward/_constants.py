@@ -20,18 +20,20 @@ Only names in upper case with an ``int`` or ``float`` value are exported to C++:
 POSITION_TOL = 1e-12
 SPEED_TOL = 1e-12
 # Likewise a normal acceleration below ACCEL_TOL (m/s^2) counts as zero. Accelerations are
-# of order g ~ 10, so rounding leaves ~1e-15 in one that is zero exactly: a ball sliding
-# on a bevel along its ridge with a corner face (the slide acceleration lies in both
-# planes) got G2 = -1.2e-15 for the corner face, so it "entered" that face at tau = 0, and
-# from there the bevel, and so on, switching faces forever at one instant.
+# of order g ~ 10, so rounding leaves ~1e-15 in one that is zero exactly (a ball sliding
+# along two inclined planes got G2 = -1.2e-15 for one, "entered" it at tau = 0, and so on,
+# switching faces forever at one instant).
 ACCEL_TOL = 1e-12
+# A hop off an edge or a corner lower than HOP_HEIGHT (m) lands where the quadratic model of
+# its distance says, not where the quartic does (estim.forward._contact._curved_time).
+HOP_HEIGHT = 1e-9
 # A point on a face's plane lies on the face if it is inside the grown box to ON_FACE_TOL.
 ON_FACE_TOL = 1e-9
 # A bounce whose post-impact normal speed is below REST_SPEED ends the bounce series: the
 # remaining flights would last less than 2 REST_SPEED / g ~ 2e-10 s in all.
 REST_SPEED = 1e-9
 # Contacts less than TIE_TIME (s) apart are simultaneous: the tie goes to the face of lower
-# rank (a box face before a bevel before a corner), then of lower index.
+# rank (a face before an edge before a corner), then of lower index.
 TIE_TIME = 1e-12
 # A component (or a cosine) of unit vectors within AXIS_TOL of 0 or 1 is taken as exactly
 # so: a face whose normal has n_z > 1 - AXIS_TOL points up, two faces whose normals have

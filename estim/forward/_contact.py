@@ -17,7 +17,9 @@ have ``G' = +-s``, so the entering one is
 the second form being free of cancellation when G1 < 0 and also covering G2 = 0. Its
 derivatives are exactly the implicit-function event-time sensitivities,
 ``d tau = -(dG0 + tau dG1 + tau^2/2 dG2) / G'(tau)``, and stay finite while s > 0. A tangent
-touch (s = 0, a grazing contact) is not an event: the ball does not cross the face.
+touch (s = 0, a grazing contact) is not an event where the ball curves away from the face
+(G2 >= 0); pressed towards it (G2 < 0), a flight whose apex touches the plane enters it
+right after, and the apex is its contact (s = 0, to ``POSITION_TOL``).
 
 What a contact does to the ball is the contact law's (``estim.forward.laws``); the
 tolerances below are defined in ``estim.forward._constants``, shared with the native
@@ -46,11 +48,13 @@ from ._constants import (
     FACE_OFFSET,
     FACE_ROW,
     FACE_SOLID,
+    HOP_HEIGHT,
     ON_FACE_TOL,
     POSITION_TOL,
     SPEED_TOL,
     TIE_TIME,
 )
+from ._curved import distance_terms, entering_times, implicit_time, piece_normal
 
 
 class Faces(eqx.Module):
@@ -72,6 +76,12 @@ class Faces(eqx.Module):
     box_lo: Float[Array, "solids 3"]
     box_hi: Float[Array, "solids 3"]
     radius: Float[Array, ""]
+    n_flat: int = eqx.field(static=True, default=0)  # faces [0, n_flat) are flat, the rest edges and corners
+
+    @property
+    def curved(self) -> bool:
+        """Whether the table has edges and corners (exact geometry)."""
+        return self.n_flat < self.rank.shape[0]
 
     @property
     def offset(self) -> Float[Array, " faces"]:
@@ -100,8 +110,9 @@ assert FACE_SOLID + 1 == FACE_ROW  # (the row of faces_for below, column by colu
 
 def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
     """The face table of ``scene`` for a ball of radius ``radius`` (differentiable in the
-    geometry and the radius). Rank is 1 for box faces and planes, 2 for edge bevels, 3 for
-    corner faces."""
+    geometry and the radius). Rank is 1 for flat faces (box faces and planes), 2 for edges
+    and 3 for corners (curved: their normal and offset columns are not used, their contact
+    surface is ``piece_frame``'s, ``estim.forward._curved``)."""
     solid = np.asarray(scene.face_solid)
     m = np.asarray(scene.face_direction)
     is_box = solid < scene.n_boxes
@@ -132,15 +143,17 @@ def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
     rank = np.where(is_box, np.abs(m).sum(axis=1), 1).astype(np.int32)
     lower = _lower_faces(scene.face_solid, scene.face_direction, scene.n_boxes)
     return Faces(row=row, growth=jnp.asarray(np.where(is_box, 1.0 / norm, 1.0)), rank=jnp.asarray(rank),
-                 lower=jnp.asarray(lower), box_lo=box_lo, box_hi=box_hi, radius=jnp.asarray(radius))
+                 lower=jnp.asarray(lower), box_lo=box_lo, box_hi=box_hi, radius=jnp.asarray(radius),
+                 n_flat=int(np.sum(rank == 1)))
 
 
 @functools.lru_cache(maxsize=64)
 def _lower_faces(face_solid, face_direction, n_boxes) -> np.ndarray:
     """For each face of a box, the faces of the same box that border it and have lower
     rank: those whose direction keeps some of its nonzero components and zeroes the others
-    (a bevel (1, 0, 1) borders (1, 0, 0) and (0, 0, 1); a corner borders 3 bevels and 3
-    faces). Faces removed as unreachable are left out. ``(faces, 6)``, -1 for none."""
+    (an edge (1, 0, 1) borders (1, 0, 0) and (0, 0, 1); a corner borders 3 edges and 3
+    faces). Faces removed as unreachable are left out. ``(faces, 6)``, -1 for none. Read
+    by the native kernels only, which run the seed's geometry (flat faces: all -1)."""
     solid, m = np.asarray(face_solid), np.asarray(face_direction, dtype=np.float64)
     index = {(int(b), tuple(d)): f for f, (b, d) in enumerate(zip(solid, m.tolist(), strict=True))}
     out = np.full((len(solid), 6), -1, dtype=np.int32)
@@ -181,15 +194,25 @@ def entering_time(
     # g2 ~ -1e-15 puts one ~1 s ahead) is no contact.
     along = touching & (jnp.abs(g1) <= SPEED_TOL) & (jnp.abs(g2) <= ACCEL_TOL)
     disc = g1 * g1 - 2.0 * g2 * g0
-    has_root = disc > 0
-    s = jnp.sqrt(jnp.where(has_root, disc, 1.0))
+    # Pressed towards the plane (g2 < 0), a flight whose apex reaches it to within
+    # POSITION_TOL touches it there (disc = 2 |g2| G_max rounds to <= 0: the apex of a
+    # flight over a tread's top, rising from beyond its edge, was no root and the ball
+    # flew through the tread) and then enters it: a root at the apex, s = 0.
+    positive = disc > 0
+    has_root = positive | ((g2 < -ACCEL_TOL) & (disc >= 2.0 * g2 * POSITION_TOL))
+    s = jnp.where(positive, jnp.sqrt(jnp.where(positive, disc, 1.0)), 0.0)
     # Double where: the unused branch must not produce inf/nan that poisons gradients.
     neg = g1 < 0
     den_a = jnp.where(neg, s - g1, 1.0)
     den_b = jnp.where(neg | (g2 == 0), -1.0, g2)
     tau = jnp.where(neg, 2.0 * g0 / den_a, (-g1 - s) / den_b)
     future = has_root & (tau > 0) & (neg | (g2 < 0))
-    return jnp.where(touching & pushed, 0.0, jnp.where(future & ~along, tau, jnp.inf))
+    # A ball touching the plane and leaving it slower than rounding resolves (a hop of
+    # 1e-17 m off a tread, with g0 = -2e-16 there is no real root) is back after
+    # -2 g1 / g2: without this it fell through the tread.
+    hop = touching & ~future & (g1 > SPEED_TOL) & (g2 < 0)
+    back = -2.0 * g1 / jnp.where(g2 < 0, g2, -1.0)
+    return jnp.where(touching & pushed, 0.0, jnp.where(future & ~along, tau, jnp.where(hop, back, jnp.inf)))
 
 
 def inner(x: Float[Array, "*n 3"], y: Float[Array, "*n 3"]) -> Float[Array, "*n"]:
@@ -211,6 +234,135 @@ def on_face(q, centre, half, radius) -> Bool[Array, "*f"]:
     return jnp.sum(excess, axis=-1) <= radius + ON_FACE_TOL
 
 
+def piece_frame(faces: Faces):
+    """Anchor (edge or vertex point) and axis mask of every face as a curved piece
+    (``estim.forward._curved``; meaningful for edges and corners only)."""
+    row = faces.row
+    m, half = row[:, DIRECTION], row[:, HALF]
+    return row[:, CENTRE] + m * jnp.where(jnp.isfinite(half), half, 0.0), jnp.abs(m)
+
+
+def in_piece(q, row) -> Bool[Array, "*f"]:
+    """Whether the centre q lies in the Voronoi region of box piece ``row`` (to
+    ``ON_FACE_TOL``): beyond the box along its direction's axes, within it along the others."""
+    m, c, h = row[..., DIRECTION], row[..., CENTRE], row[..., HALF]
+    d = q - c
+    beyond = jnp.where(m != 0, m * d - h >= -ON_FACE_TOL, True)
+    within = jnp.where(m == 0, jnp.abs(d) - h <= ON_FACE_TOL, True)
+    return jnp.all(beyond & within, axis=-1)
+
+
+def _touching_terms(A, B, C, r):
+    """G = |P| - r and its first two derivatives at tau = 0 (``estim.forward._curved``)."""
+    rho = jnp.sqrt(inner(A, A))
+    rho_s = jnp.where(rho > 0, rho, 1.0)
+    g1 = inner(A, B) / rho_s
+    g2 = (inner(B, B) + 2.0 * inner(A, C)) / rho_s - g1 * g1 / rho_s
+    return rho - r, g1, g2
+
+
+def _curved_time(faces: Faces, anchor, mask, row, p, v, a, start, horizon):
+    """Earliest time the ball enters each curved piece within ``[start, horizon]``, inside
+    the piece's region; 0 if it touches the piece and moves into it; ``inf`` if never.
+    Values only."""
+    A, B, C = distance_terms(p, v, a, anchor, mask)
+    r = jnp.broadcast_to(faces.radius, A.shape[:-1])
+    g0, g1, g2 = _touching_terms(A, B, C, r)
+    touching = jnp.abs(g0) <= POSITION_TOL
+    now = touching & moves_into(g1, g2)
+    roots = entering_times(A, B, C, r, jnp.broadcast_to(start, r.shape), jnp.broadcast_to(horizon, r.shape))
+    # A hop off the surface lower than HOP_HEIGHT is below what D resolves (D ~ 2 r G
+    # rounds at ~r^2 1e-16: a 1e-17 m hop on an edge read as never leaving it, and the ball
+    # fell through the tread); its landing is the root of G's own quadratic model
+    # g1 tau + g2 tau^2 / 2, exact to O(tau^3) over a hop that short.
+    low = touching & (g1 > 0) & (g2 < 0) & (g1 * g1 <= -2.0 * g2 * HOP_HEIGHT)
+    hop = jnp.where(low, -2.0 * g1 / jnp.where(low, g2, -1.0), jnp.inf)
+    roots = jnp.concatenate([jnp.where(low, hop, jnp.inf)[..., None], roots], axis=-1)
+    at = jnp.where(jnp.isfinite(roots), roots, 0.0)[..., None]
+    q = p[..., None, :] + v[..., None, :] * at + 0.5 * a[..., None, :] * at * at
+    valid = jnp.isfinite(roots) & in_piece(q, row[..., None, :])
+    return jnp.where(now, 0.0, jnp.min(jnp.where(valid, roots, jnp.inf), axis=-1))
+
+
+def _reach_box(faces: Faces):
+    """Each piece's box of reach: for an edge or a corner, the box beyond the solid's box by
+    at most r along its direction's axes (a superset of the piece), grown by
+    ``POSITION_TOL``: ``(lo, hi)``."""
+    row = faces.row
+    m, c, half = row[:, DIRECTION], row[:, CENTRE], row[:, HALF]
+    r = faces.radius
+    lo = jnp.where(m > 0, c + half, jnp.where(m < 0, c - half - r, c - half)) - POSITION_TOL
+    hi = jnp.where(m > 0, c + half + r, jnp.where(m < 0, c - half, c + half)) + POSITION_TOL
+    return lo, hi
+
+
+def _reaches(faces: Faces, p, v, a, horizon):
+    """Whether the bounding box of the parabola over [0, horizon] meets each piece's box of
+    reach (a cheap screen, before ``_reach_window``)."""
+    h = jnp.minimum(horizon, 1e6)
+    p1, _ = ballistic(p, v, a, h)
+    apex = jnp.where(a != 0, -v / jnp.where(a != 0, a, 1.0), 0.0)
+    inside = (apex > 0) & (apex < h)
+    q_apex, _ = ballistic(p, v, a, jnp.where(inside, apex, 0.0))
+    lo = jnp.minimum(jnp.minimum(p, p1), jnp.where(inside, q_apex, p))
+    hi = jnp.maximum(jnp.maximum(p, p1), jnp.where(inside, q_apex, p))
+    b_lo, b_hi = _reach_box(faces)
+    return jnp.all((lo <= b_hi) & (hi >= b_lo), axis=1)
+
+
+def _axis_window(p, v, a, lo, hi, horizon):
+    """Per axis, the hull ``(t0, t1)`` of the times in ``[0, horizon]`` at which
+    ``p + v t + a t^2 / 2`` lies in ``[lo, hi]`` (``t0 > t1``: never): its ends are among
+    0, the horizon and the times it crosses lo or hi."""
+    h = jnp.minimum(horizon, 1e6)  # (an infinite horizon: a million seconds)
+
+    def crossings(c):
+        # (a/2) t^2 + v t + (p - c) = 0, both roots without cancellation (Numerical Recipes 5.6).
+        a2, c0 = 0.5 * a, p - c
+        disc = v * v - 4.0 * a2 * c0
+        s = jnp.sqrt(jnp.where(disc >= 0, disc, 0.0))
+        q = -0.5 * (v + jnp.where(v >= 0, s, -s))
+        ok = disc >= 0
+        r1 = jnp.where(ok & (a2 != 0), q / jnp.where(a2 != 0, a2, 1.0), jnp.nan)
+        r2 = jnp.where(ok & (q != 0), c0 / jnp.where(q != 0, q, 1.0), jnp.nan)
+        return r1, r2
+
+    cands = jnp.stack([jnp.zeros_like(lo), jnp.broadcast_to(h, lo.shape), *crossings(lo), *crossings(hi)], axis=-1)
+    t = jnp.where(jnp.isfinite(cands), cands, -1.0)
+    q = p[..., None] + v[..., None] * t + 0.5 * a[..., None] * t * t
+    # The crossings are on the bounds up to rounding: a relative margin keeps them.
+    margin = 1e-9 * (1.0 + jnp.abs(lo) + jnp.abs(hi))[..., None]
+    valid = (t >= 0) & (t <= h) & (q >= lo[..., None] - margin) & (q <= hi[..., None] + margin)
+    return (jnp.min(jnp.where(valid, t, jnp.inf), axis=-1), jnp.max(jnp.where(valid, t, -jnp.inf), axis=-1))
+
+
+def _reach_window(faces: Faces, p, v, a, horizon):
+    """For each face, the time window within ``[0, horizon]`` in which the parabola can be in
+    its box of reach (for an edge or a corner: the box beyond the solid's box by at most r
+    along its direction's axes, a superset of the piece): ``(t0, t1)``, empty if
+    ``t0 > t1``. A screen: only pieces with a window need their quartic, and only within it."""
+    b_lo, b_hi = _reach_box(faces)
+    # The hull over x and y (one interval each along a flight in vacuum, where x and y are
+    # linear in time), then whether z, over that interval, comes into the box's z range:
+    # exact where x and y are linear (a flight leaving a tread meets its edge's box in x
+    # only long after it has risen above it in z), a superset elsewhere.
+    t0, t1 = _axis_window(p[:2], v[:2], a[:2], b_lo[:, :2], b_hi[:, :2], horizon)
+    t0, t1 = jnp.maximum(jnp.max(t0, axis=1), 0.0), jnp.min(t1, axis=1)
+    z0 = p[2] + v[2] * t0 + 0.5 * a[2] * t0 * t0
+    z1 = p[2] + v[2] * t1 + 0.5 * a[2] * t1 * t1
+    apex = jnp.where(a[2] != 0, -v[2] / jnp.where(a[2] != 0, a[2], 1.0), -1.0)
+    at_apex = (apex > t0) & (apex < t1)
+    za = jnp.where(at_apex, p[2] + v[2] * apex + 0.5 * a[2] * apex * apex, z0)
+    z_lo, z_hi = jnp.minimum(jnp.minimum(z0, z1), za), jnp.maximum(jnp.maximum(z0, z1), za)
+    meets = (t0 <= t1) & (z_lo <= b_hi[:, 2]) & (z_hi >= b_lo[:, 2])
+    return jnp.where(meets, t0, jnp.inf), jnp.where(meets, t1, -jnp.inf)
+
+
+# Edges and corners searched together; a flight near more of them at once (near a corner)
+# searches them all.
+NEAR_PIECES = 4
+
+
 def first_contact(
     faces: Faces,
     p: Float[Array, "3"],
@@ -222,17 +374,18 @@ def first_contact(
     """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.
 
     ``exclude`` is a face the ball is sliding on (or -1), ``also`` a second one (a wall it
-    slides along, or -1). Faces reached at the same instant
-    (to ``TIE_TIME``, 1e-12 s) are resolved in favour of box faces over bevels over corners, so a ball
-    landing exactly on a tread edge lands on the tread.
+    slides along, or -1). Faces reached at the same instant (to ``TIE_TIME``, 1e-12 s) are
+    resolved in favour of faces over edges over corners, so a ball landing exactly where a
+    tread's top meets its edge lands on the top (the two have the same normal there).
 
-    At an edge of a solid's contact region (where a face meets a face of lower rank, e.g. a
-    bevel meets the tread top) the ball enters the solid only if it enters the lower-rank
-    face too: a ball that touches the tread top there but leaves it (a rebound from the
-    edge point) or moves along it (a slide on the top) is not stopped by the bevel.
+    Flat faces first, in closed form (equation (2)); then the edges and corners whose box
+    of reach the flight meets before that contact (``_reaches``), each by its quartic
+    (``estim.forward._curved``), in a branch that flights far from every edge skip.
     """
-    normal, offset = faces.row[:, NORMAL], faces.offset
-    centre, half = faces.row[:, CENTRE], faces.row[:, HALF]
+    k = faces.n_flat
+    row = faces.row[:k]
+    normal, offset = row[:, NORMAL], faces.offset[:k]
+    centre, half = row[:, CENTRE], row[:, HALF]
     tau = entering_time(inner(normal, p) - offset, inner(normal, v), inner(normal, a))
     finite = jnp.isfinite(tau)
     # on_face at the entering points, one axis at a time: (faces, 3) arrays reduced over
@@ -243,63 +396,112 @@ def first_contact(
         jnp.maximum(jnp.abs(p[i] + v[i] * at + 0.5 * a[i] * at * at - centre[:, i]) - half[:, i], 0.0)
         for i in range(3)
     )
-    ok = finite & (excess <= faces.radius + ON_FACE_TOL)
-    ok = ok & (jnp.arange(tau.shape[0]) != exclude) & (jnp.arange(tau.shape[0]) != also)
+    index = jnp.arange(faces.rank.shape[0])
+    ok = finite & (excess <= faces.radius + ON_FACE_TOL) & (index[:k] != exclude) & (index[:k] != also)
     tau = jnp.where(ok, tau, jnp.inf)
+    if faces.curved:
+        pieces = eqx.tree_at(lambda f: (f.row, f.rank), faces, (faces.row[k:], faces.rank[k:]))
+        horizon = jnp.min(tau)
+        # A cheap screen first (the flight's bounding box against each piece's box of
+        # reach), then the exact window of the few it leaves, then their quartics.
+        near = _reaches(pieces, p, v, a, horizon) & (index[k:] != exclude) & (index[k:] != also)
+        none = jnp.full(near.shape, jnp.inf)
+
+        def search(rows, t0, t1):
+            anchor, mask = piece_frame(eqx.tree_at(lambda f: f.row, pieces, rows))
+            return _curved_time(faces, anchor, mask, rows, p, v, a, jnp.maximum(t0, 0.0), t1)
+
+        def few(_):
+            """The first NEAR_PIECES pieces the screen leaves, gathered."""
+            # (The j-th near piece by an integer min, and back by a compare: a nonzero or a
+            # scatter would be a library call in the event loop, estim._config.)
+            rank = jnp.cumsum(near) - 1
+            n = near.shape[0]
+            pick = jnp.stack([jnp.min(jnp.where(near & (rank == j), jnp.arange(n), n)) for j in range(NEAR_PIECES)])
+            pick = jnp.minimum(pick, n - 1)
+            rows = pieces.row[pick]
+            t0, t1 = _reach_window(eqx.tree_at(lambda f: f.row, pieces, rows), p, v, a, horizon)
+            ok = near[pick] & (t0 <= t1)
+            found = jax.lax.cond(jnp.any(ok), lambda: search(rows, t0, jnp.where(ok, t1, 0.0)),
+                                 lambda: jnp.full(ok.shape, jnp.inf))
+            found = jnp.where(ok, found, jnp.inf)
+            return jnp.min(jnp.where(pick[:, None] == jnp.arange(near.shape[0]), found[:, None], jnp.inf), axis=0)
+
+        def every(_):
+            t0, t1 = _reach_window(pieces, p, v, a, horizon)
+            ok = near & (t0 <= t1)
+            return jnp.where(ok, search(pieces.row, t0, jnp.where(ok, t1, 0.0)), jnp.inf)
+
+        count = jnp.sum(near)
+        branch = jnp.where(count == 0, 0, jnp.where(count <= NEAR_PIECES, 1, 2))
+        tau = jnp.concatenate([tau, jax.lax.switch(branch, [lambda _: none, few, every], None)])
 
     n_faces = tau.shape[0]
     # Ties broken by rank, then by index, with one integer min (an argmin is a two-operand
     # reduction, slower on the CPU).
     order = faces.rank * n_faces + jnp.arange(n_faces, dtype=faces.rank.dtype)
-
-    def earliest(tau):
-        t_min = jnp.min(tau)
-        near = tau <= t_min + TIE_TIME
-        return t_min, (jnp.min(jnp.where(near, order, 4 * n_faces)) % n_faces).astype(jnp.int32)
-
-    def blocked(face, t):
-        """The ball touches a lower-rank face bordering ``face`` at its contact point
-        without entering it."""
-        lower = faces.lower[face]
-        nj = normal[jnp.maximum(lower, 0)]
-        qf, wf = ballistic(p, v, a, jnp.where(jnp.isfinite(t), t, 0.0))
-        gj0 = inner(nj, qf) - offset[jnp.maximum(lower, 0)]
-        gj1, gj2 = inner(nj, wf), inner(nj, a)
-        touches = (lower >= 0) & (jnp.abs(gj0) <= POSITION_TOL)
-        # A ball at the apex of a graze leaves the face by no more than gj1^2 / (2 |gj2|)
-        # before falling into it: within POSITION_TOL that is entering it, not leaving
-        # (a flight whose apex touched a tread top 1e-12 m inside its edge, rising at
-        # 1e-11 m/s there, had its bevel contact dropped and flew through the tread).
-        grazes = (gj2 < -ACCEL_TOL) & (gj1 * gj1 <= -2.0 * gj2 * POSITION_TOL)
-        enters = moves_into(gj1, gj2) | grazes
-        return jnp.isfinite(t) & jnp.any(touches & ~enters)
-
-    # A blocked candidate is dropped and the next earliest taken: at a corner of a box at
-    # most three (two bevels and the corner face) can be blocked at once. (A loop, not
-    # three unrolled copies: the event loop compiles as one kernel, 0.7 s faster so; and one
-    # that stops at the first candidate not blocked, which for one ball is the first.)
-    def is_blocked(c):
-        rounds, tau, t_min, face = c
-        return (rounds < 3) & blocked(face, t_min)
-
-    def drop(c):
-        rounds, tau, t_min, face = c
-        tau = jnp.where(jnp.arange(tau.shape[0]) == face, jnp.inf, tau)
-        return (rounds + 1, tau) + earliest(tau)
-
-    _, _, t_min, face = jax.lax.while_loop(is_blocked, drop, (jnp.int32(0), tau) + earliest(tau))
+    t_min = jnp.min(tau)
+    near = tau <= t_min + TIE_TIME
+    face = (jnp.min(jnp.where(near, order, 4 * n_faces)) % n_faces).astype(jnp.int32)
     return t_min, jnp.where(jnp.isfinite(t_min), face, -1)
 
 
 def face_normal(faces: Faces, face):
-    """Unit outward normal of face ``face``."""
+    """Unit outward normal of flat face ``face`` (of a curved one: see ``contact_normal``)."""
     return faces.row[face, NORMAL]
 
 
-def face_entering_time(faces: Faces, face, p, v, a):
-    """``entering_time`` for one face, recomputed from the state (differentiable)."""
+def is_curved(faces: Faces, face) -> Bool[Array, ""]:
+    """Whether face ``face`` is an edge or a corner (a curved piece)."""
+    return faces.rank[face] >= 2
+
+
+def contact_normal(faces: Faces, face, q):
+    """Unit outward normal of face ``face`` at the centre q: the face's own on a flat face,
+    from the edge or vertex to q on a curved piece (``estim.model._scene``)."""
+    flat = faces.row[face, NORMAL]
+    if not faces.curved:
+        return flat
+    anchor, mask = piece_frame(faces)
+    return jnp.where(is_curved(faces, face), piece_normal(q, anchor[face], mask[face]), flat)
+
+
+def across_speed2(faces: Faces, face, v, n):
+    """Squared speed of v across curved piece ``face`` at normal n: its tangential part,
+    less its part along the axis of an edge (along which the surface does not curve)."""
+    along = 1.0 - jnp.abs(faces.row[face, DIRECTION])  # an edge's free axis (none at a corner)
+    tangential = v - inner(v, n) * n
+    edge = jnp.sum(along) == 1
+    return inner(tangential, tangential) - jnp.where(edge, inner(along, v) ** 2, 0.0)
+
+
+def contact_normals(scene: Scene, face: Int[Array, "*n"], position: Float[Array, "*n 3"]) -> Float[Array, "*n 3"]:
+    """Unit contact normals (from the solid towards the ball's centre) of balls touching
+    faces ``face`` (``Events.face``) with their centres at ``position``
+    (``Events.position``); zero where ``face`` is -1 (padding). (The normal does not depend
+    on the ball's radius: on an edge or a corner it points from the edge or the vertex to
+    the centre.)"""
+    faces = faces_for(scene, jnp.float64(0.0))
+    face, position = jnp.asarray(face), jnp.asarray(position, jnp.float64)
+    flat_f, flat_q = face.reshape(-1), position.reshape(-1, 3)
+    n = jax.vmap(lambda f, q: contact_normal(faces, jnp.maximum(f, 0), q))(flat_f, flat_q)
+    return jnp.where((flat_f >= 0)[:, None], n, 0.0).reshape(position.shape)
+
+
+def face_entering_time(faces: Faces, face, p, v, a, found):
+    """``entering_time`` for one face, recomputed from the state (differentiable). On an
+    edge or a corner, ``found`` is the time the contact search found (values), made
+    differentiable by the implicit-function theorem (``estim.forward._curved``): the
+    search is not run again."""
     n, h = faces.normal_offset(face)
-    return entering_time(inner(n, p) - h, inner(n, v), inner(n, a))
+    flat = entering_time(inner(n, p) - h, inner(n, v), inner(n, a))
+    if not faces.curved:
+        return flat
+    anchor, mask = piece_frame(faces)
+    A, B, C = distance_terms(p, v, a, anchor[face], mask[face])
+    found = jax.lax.stop_gradient(jnp.where(jnp.isfinite(found), found, 0.0))
+    curved = jnp.where(found > 0, implicit_time(found, A, B, C, faces.radius), 0.0 * found)
+    return jnp.where(is_curved(faces, face), curved, flat)
 
 
 def slide_exit_time(faces: Faces, face, p, v, a):
@@ -370,17 +572,6 @@ def train_reach(faces: Faces, face, p, u, height):
     exit_face = jnp.where(moving, jnp.min(to_edge), inf)
     reach = jnp.minimum(obstacle, exit_face)
     return jnp.where(obstacle <= POSITION_TOL, -1.0, jnp.maximum(reach, 0.0))
-
-
-def series_clear(faces: Faces, face, p, v, duration, gravity):
-    """Whether a bounce series on face ``face`` that starts at p with velocity v and lasts
-    ``duration`` provably meets no other solid: every point of it lies within
-    ``D = |v| T + g T^2 / 2`` of p (T the duration), so the cube of half-side D around p
-    must not meet another solid's box grown by r. Conservative; for a series on an inclined
-    face (an edge bevel), where the slab test of ``train_reach`` does not apply."""
-    d = jnp.sqrt(jnp.sum(v * v)) * duration + 0.5 * gravity * duration**2
-    meets = jnp.all(p - d < faces.hi, axis=1) & jnp.all(p + d > faces.lo, axis=1)
-    return ~jnp.any(meets & (jnp.arange(faces.lo.shape[0]) != faces.row[face, SOLID]))
 
 
 def sweep_clear(faces: Faces, p, v, a, h, margin):

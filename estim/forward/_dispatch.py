@@ -12,11 +12,13 @@ the benchmarks.
 
 from __future__ import annotations
 
+import contextlib
+
 from ..model._scene import Scene
 from . import _native, _solver
 from ._solver import Plan
 
-__all__ = ["NATIVE", "JAX", "ODE", "path", "closed_form_plan"]
+__all__ = ["NATIVE", "JAX", "ODE", "path", "closed_form_plan", "jax_planner"]
 
 NATIVE, JAX, ODE = "native", "jax", "ode"
 
@@ -35,3 +37,15 @@ def closed_form_plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     if path(scene) == NATIVE:
         return _native.plan(scene, params, t_end, max_segments)
     return _solver.plan(scene, params, t_end, max_segments)
+
+
+@contextlib.contextmanager
+def jax_planner():
+    """Within the block, the closed form runs on the JAX planner, not the kernels (programs
+    traced before keep the path they were traced with)."""
+    was = _native.ENABLED
+    _native.ENABLED = False
+    try:
+        yield
+    finally:
+        _native.ENABLED = was

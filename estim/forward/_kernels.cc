@@ -205,13 +205,17 @@ inline __attribute__((always_inline)) double entering_time(double g0, double g1,
   const bool pushed = moves_into(g1, g2);
   const bool along = touching & (std::fabs(g1) <= SPEED_TOL) & (std::fabs(g2) <= ACCEL_TOL);
   const double disc = g1 * g1 - 2.0 * g2 * g0;
-  const bool has_root = disc > 0;
-  const double s = std::sqrt(has_root ? disc : 1.0);
+  const bool positive = disc > 0;
+  const bool has_root = positive | ((g2 < -ACCEL_TOL) & (disc >= 2.0 * g2 * POSITION_TOL));
+  const double s = positive ? std::sqrt(positive ? disc : 1.0) : 0.0;
   const bool neg = g1 < 0;
   // neg: 2 g0 / (s - g1); else (-g1 - s) / (g2, or -1 where g2 = 0)
   const double tau = (neg ? 2.0 * g0 : -g1 - s) / (neg ? s - g1 : (g2 == 0 ? -1.0 : g2));
   const bool future = has_root & (tau > 0) & (neg | (g2 < 0));
-  return (touching & pushed) ? 0.0 : ((future & !along) ? tau : kInf);
+  // A hop lower than rounding (g0 a hair inside, no real root): back after -2 g1 / g2.
+  const bool hop = touching & !future & (g1 > SPEED_TOL) & (g2 < 0);
+  const double back = -2.0 * g1 / (g2 < 0 ? g2 : -1.0);
+  return (touching & pushed) ? 0.0 : ((future & !along) ? tau : (hop ? back : kInf));
 }
 
 // ballistic: p + v tau + a tau^2 / 2 (as ((p + v tau) + ((0.5 a) tau) tau)), v + a tau
@@ -825,16 +829,23 @@ void pad(Plan* pl) {
 // ---------------------------------------------------------------------------------------
 // estim.forward._balls: a ball inside a solid (deeper than INSIDE_DEPTH), and the planned path's check
 
-bool inside_solid(const Faces& fc, V3 p, double r) {
+bool inside_solid(const Faces& fc, V3 p, double r, bool path) {
   const Scene& sc = *fc.s;
   const double limit = r - INSIDE_DEPTH;
+  // The seed's geometry (the only one the kernels run, estim.forward._native.supports): a
+  // box is entered beyond one of its faces only, not beyond two or three at once; along a
+  // path, only where the centre is inside the box itself (a ball passes corners).
   for (int b = 0; b < sc.n_boxes; ++b) {
-    // (The depth is a sum of terms >= 0, or NaN: once a partial sum is not below the
-    // limit, neither is the depth, and the box is left.)
-    double depth = 0.0;
-    int i = 0;
-    for (; i < 3 && depth < limit; ++i) depth = depth + jmax(std::fabs(p[i] - sc.centre[b * 3 + i]) - sc.half[b * 3 + i], 0.0);
-    if (i == 3 && depth < limit) return true;
+    double depth = 0.0, gap_max = -kInf;
+    int beyond = 0;
+    for (int i = 0; i < 3; ++i) {
+      const double gap = std::fabs(p[i] - sc.centre[b * 3 + i]) - sc.half[b * 3 + i];
+      const double excess = jmax(gap, 0.0);
+      gap_max = jmax(gap_max, gap);
+      beyond += excess > 0.0;
+      depth = depth + excess;
+    }
+    if (path ? gap_max < -INSIDE_DEPTH : (beyond <= 1 && depth < limit)) return true;
   }
   for (int k = 0; k < sc.n_planes; ++k) {
     const double height = p[0] * sc.p_normal[k * 3] + p[1] * sc.p_normal[k * 3 + 1] + p[2] * sc.p_normal[k * 3 + 2];
@@ -846,12 +857,12 @@ bool inside_solid(const Faces& fc, V3 p, double r) {
 // (Each point once: a segment starts where the one before it ends, and a bounce series'
 // middle is taken at its start.)
 bool stays_outside(const Faces& fc, double r, const Plan& pl) {
-  if (pl.n_segments > 0 && inside_solid(fc, pl.segments[0].p0, r)) return false;
+  if (pl.n_segments > 0 && inside_solid(fc, pl.segments[0].p0, r, true)) return false;
   for (int k = 0; k < pl.n_segments; ++k) {
     const Segment& s = pl.segments[k];
     const bool middle_inside =
-        pl.decisions[k].kind != TRAIN && inside_solid(fc, ballistic_p(s.p0, s.v0, s.acc, 0.5 * (s.t1 - s.t0)), r);
-    if (middle_inside || inside_solid(fc, s.p1, r)) return false;
+        pl.decisions[k].kind != TRAIN && inside_solid(fc, ballistic_p(s.p0, s.v0, s.acc, 0.5 * (s.t1 - s.t0)), r, true);
+    if (middle_inside || inside_solid(fc, s.p1, r, true)) return false;
   }
   return true;
 }
@@ -1261,7 +1272,7 @@ int input_code(const Faces& fc, const Ball& b, bool has_mass, double mass, doubl
   if (!(std::isfinite(t_end) && t_end > 0)) return 9;
   for (int64_t j = 0; j < T; ++j)
     if (!(std::isfinite(ts[j]) && ts[j] >= 0 && ts[j] <= t_end)) return 10;
-  if (inside_solid(fc, b.position, b.radius)) return 11;
+  if (inside_solid(fc, b.position, b.radius, false)) return 11;
   return 0;
 }
 

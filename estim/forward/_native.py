@@ -108,9 +108,11 @@ def active() -> bool:
 def supports(law: AbstractContactLaw, scene: Scene) -> bool:
     """Whether the kernels compute the closed-form path of ``scene`` under ``law``: the
     seed's factor law (``estim.forward.laws.FactorLaw``, the only law they implement) in a
-    scene without air (a scene with air takes the ODE path). Anything else runs on the
-    JAX planner, with the same results."""
-    return isinstance(law, FactorLaw) and scene.air is None
+    scene without air (a scene with air takes the ODE path) and with the seed's geometry
+    (the kernels have no edges or corners: exact geometry runs on the JAX planner, its cost
+    in ``docs/pages/speed.md``). Anything else runs on the JAX planner, with the same
+    results."""
+    return isinstance(law, FactorLaw) and scene.air is None and scene.geometry == "seed"
 
 
 def runs(scene: Scene) -> bool:
@@ -124,7 +126,7 @@ def _check_supported(scene: Scene) -> None:
     if not supports(law, scene):
         raise ValueError(
             f"the native kernels do not support the contact law {type(law).__name__} in this scene "
-            "(estim.forward._native.supports: the factor law without air); use the JAX planner "
+            "(estim.forward._native.supports: the factor law without air, the seed's geometry); use the JAX planner "
             "(estim.forward._solver.plan), which estim.forward._native.runs(scene) chooses"
         )
 

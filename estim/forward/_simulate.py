@@ -181,17 +181,19 @@ def simulate(
 
 
 _INCOMPLETE = (
-    "a ball needed more closed-form segments than max_segments, or its path entered a solid "
-    "(a degenerate contact the closed forms missed: a graze or a slide exactly at an edge); "
-    "increase max_segments (a ball bouncing where no series can be summed, against an edge "
-    "or a bevel or between walls, takes a segment per bounce), move the ball off the "
-    "degenerate point, or pass throw=False and inspect Trajectory.complete"
+    "a ball needed more closed-form segments than max_segments, or it would roll over an "
+    "edge or a corner (reached it without normal speed, pressed onto it: not modelled yet), "
+    "or its path entered a solid (a degenerate contact the closed forms missed); increase "
+    "max_segments (a ball bouncing where no series can be summed, against an edge or "
+    "between walls, takes a segment per bounce), move the ball off the degenerate point, "
+    "or pass throw=False and inspect Trajectory.complete"
 )
 
 
 _INCOMPLETE_ODE = (
-    "a ball needed more ODE steps than max_steps; increase max_steps or loosen rtol/atol, "
-    "or pass throw=False and inspect Trajectory.complete"
+    "a ball needed more ODE steps than max_steps, or it would roll over an edge or a corner "
+    "(reached it without normal speed, pressed onto it: not modelled yet); increase "
+    "max_steps or loosen rtol/atol, or pass throw=False and inspect Trajectory.complete"
 )
 
 

@@ -59,17 +59,16 @@ from ._constants import (
     UNUSED,
 )
 from ._contact import (
-    CENTRE,
-    HALF,
     Faces,
+    across_speed2,
     ballistic,
+    contact_normal,
     face_entering_time,
     face_normal,
     faces_for,
     first_contact,
     inner,
-    on_face,
-    series_clear,
+    is_curved,
     slide_exit_time,
     train_reach,
 )
@@ -111,9 +110,11 @@ def _slide_frame(faces, support, v, a):
     return v - inner(v, n) * n, a - inner(a, n) * n
 
 
-def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decision, t_end) -> Segment:
+def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decision, t_end, found) -> Segment:
     """Carry the state (t, p, v) through one segment with structure ``d``, under the
-    contact law ``law`` with the ball's coefficients ``c`` (``law.coefficients``)."""
+    contact law ``law`` with the ball's coefficients ``c`` (``law.coefficients``).
+    ``found``: the contact time the search found (values: used on an edge or a corner,
+    ``estim.forward._contact.face_entering_time``)."""
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     slide_v, slide_a = _slide_frame(faces, d.support, v, a)
@@ -123,12 +124,12 @@ def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decis
     face = jnp.maximum(d.face, 0)
 
     # FLIGHT and SLIDE: ballistic motion to a contact, a slide exit, or t_end.
-    tau_contact = face_entering_time(faces, face, p, v0, acc)
+    tau_contact = face_entering_time(faces, face, p, v0, acc, found)
     tau_exit = slide_exit_time(faces, jnp.maximum(d.support, 0), p, v0, acc)
     tau_b = jnp.where(d.reason == CONTACT, tau_contact, jnp.where(d.reason == EXIT, tau_exit, t_end - t))
     tau_b = jnp.where(jnp.isfinite(tau_b), tau_b, 0.0)
     p_b, v_b = ballistic(p, v0, acc, tau_b)
-    n_face = face_normal(faces, face)
+    n_face = contact_normal(faces, face, p_b)
     v_b_post = jnp.where(d.reason == CONTACT, law.contact_velocity(v_b, n_face, a, c), v_b)
 
     # TRAIN: a closed-form series of bounces, to bounce n, to its accumulation, or to t_end.
@@ -169,14 +170,21 @@ def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decis
 
 
 def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segment, d: Decision):
-    """Kind, support and bounce count of the segment that follows ``seg``."""
+    """Kind, support and bounce count of the segment that follows ``seg``, and whether the
+    ball goes on (``False`` where it would roll over an edge or a corner: not modelled)."""
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     face = jnp.maximum(d.face, 0)
-    n_face = face_normal(faces, face)
+    n_face = contact_normal(faces, face, seg.p1)
     post = seg.v1_post
-    settled = (jnp.abs(inner(post, n_face)) <= REST_SPEED) & (inner(n_face, a) < 0)
-    up = n_face[2] > 1.0 - AXIS_TOL
+    curved = is_curved(faces, face) & (d.reason == CONTACT)
+    touches = jnp.abs(inner(post, n_face)) <= REST_SPEED
+    settled = touches & (inner(n_face, a) < 0) & ~curved
+    # On an edge or a corner a ball without normal speed follows the curve (rolls over it)
+    # where gravity's push into the surface exceeds the centripetal acceleration of its
+    # tangential motion across the curve, |u|^2 / r; else it leaves the surface at once.
+    rolls = curved & touches & (inner(n_face, a) + across_speed2(faces, face, post, n_face) / faces.radius < 0)
+    up = (n_face[2] > 1.0 - AXIS_TOL) & ~curved
 
     def on_upward(_):
         """A bounce series on an upward face: how many bounces provably land on it."""
@@ -188,38 +196,20 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
         y = jnp.where(speed > 0, reach / jnp.where(speed > 0, speed * t_flight, 1.0), jnp.inf)
         return jnp.where(reach < 0, 0.0, law.landings_within(y, c))
 
-    def on_bevel(_):
-        """On an inclined face that supports the ball (an edge bevel) only a whole Zeno series
-        is summed, when its accumulation point and its first landing lie on the face ..."""
-        n_inc = jnp.where(inclined, n_face, jnp.array([0.0, 0.0, 1.0]))
-        s = series(jnp.where(inclined, post, n_inc), n_inc, a)
-        t_total, x_inf, _ = law.series_end(s, jnp.inf, c)
-        _, x_one, _ = law.series_end(s, 1.0, c)
-        row = faces.row[face]
-        lands = on_face(seg.p1 + x_inf, row[CENTRE], row[HALF], faces.radius) & on_face(
-            seg.p1 + x_one, row[CENTRE], row[HALF], faces.radius
-        )
-        # ... and nothing else in its way over its whole duration (a ball bouncing on a
-        # bevel into a riser beside it is followed bounce by bounce instead).
-        clear = series_clear(faces, face, seg.p1, post, t_total, g)
-        return jnp.where(lands & clear, jnp.inf, 0.0)
-
     if law.summable:
-        inclined = (inner(n_face, a) < 0) & ~up & law.accumulates(c)
         # (lax.cond: for one ball only the count its face needs is computed.)
-        n_train = jax.lax.cond(
-            inclined, on_bevel, lambda _: jax.lax.cond(up, on_upward, lambda _: jnp.float64(0.0), None), None
-        )
+        n_train = jax.lax.cond(up, on_upward, lambda _: jnp.float64(0.0), None)
     else:  # bounce by bounce
-        inclined, n_train = jnp.bool_(False), jnp.float64(0.0)
+        n_train = jnp.float64(0.0)
     # A wall hit while sliding keeps the ball on its face.
     if_support = face_normal(faces, jnp.maximum(d.support, 0))
-    stays = (d.kind == SLIDE) & (jnp.abs(inner(n_face, if_support)) < AXIS_TOL)
+    stays = (d.kind == SLIDE) & (jnp.abs(inner(n_face, if_support)) < AXIS_TOL) & ~curved
 
-    after_contact_kind = jnp.where(
-        stays | settled, SLIDE, jnp.where((up | inclined) & (n_train >= 1), TRAIN, FLIGHT)
-    )
-    after_contact_support = jnp.where(stays, d.support, face)
+    after_contact_kind = jnp.where(stays | settled, SLIDE, jnp.where(up & (n_train >= 1), TRAIN, FLIGHT))
+    # A ball that touches an edge or a corner without normal speed and leaves it does not
+    # meet that piece again in the flight that follows (it is excluded, as a face slid off).
+    grazed = curved & touches
+    after_contact_support = jnp.where(stays | grazed, jnp.where(stays, d.support, face), face)
     kind = jnp.select(
         [d.reason == CONTACT, d.reason == SETTLE, d.reason == END],
         [after_contact_kind, SLIDE, UNUSED],
@@ -231,13 +221,15 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
         -1,
     )
     # A FLIGHT keeps as support the face it slid off (excluded from its contacts).
-    support = jnp.where((kind == TRAIN) | (kind == SLIDE) | (d.reason == EXIT), support, -1)
+    keeps = (kind == TRAIN) | (kind == SLIDE) | (d.reason == EXIT) | ((d.reason == CONTACT) & grazed)
+    support = jnp.where(keeps, support, -1)
     n = jnp.where(kind == TRAIN, n_train, 0.0)
-    return kind.astype(jnp.int32), support.astype(jnp.int32), n
+    return kind.astype(jnp.int32), support.astype(jnp.int32), n, ~rolls
 
 
 def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind, support, n, t_end):
-    """How the segment starting at (t, p, v) ends: ``(reason, face)``."""
+    """How the segment starting at (t, p, v) ends: ``(reason, face, tau)``, tau the time to
+    a contact (else inf)."""
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     is_train = kind == TRAIN
@@ -253,7 +245,7 @@ def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind
         tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
         tau_b = jnp.minimum(tau_c, tau_x)
         reason_b = jnp.where(t + tau_b >= t_end, END, jnp.where(tau_c <= tau_x, CONTACT, EXIT))
-        return reason_b.astype(jnp.int32), jnp.where(reason_b == CONTACT, face, -1).astype(jnp.int32)
+        return reason_b.astype(jnp.int32), jnp.where(reason_b == CONTACT, face, -1).astype(jnp.int32), tau_c
 
     def train_end(_):
         up = jnp.array([0.0, 0.0, 1.0])
@@ -261,7 +253,7 @@ def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind
         s = series(jnp.where(is_train, v, up), n_sup, a)
         duration, _, _ = law.series_end(s, jnp.where(is_train, n, 1.0), c)
         reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
-        return reason_t.astype(jnp.int32), jnp.int32(-1)
+        return reason_t.astype(jnp.int32), jnp.int32(-1), jnp.float64(jnp.inf)
 
     if not law.summable:  # (no TRAIN segments)
         return ballistic_end(None)
@@ -295,24 +287,25 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
     def cond(carry):
         k, _, done, _, _ = carry
-        return (k < S) & ~done
+        return (k < S) & (done == 0)
 
     def body(carry):
         k, (t, p, v, kind, support, n), _, record, (params, t_end) = carry
         faces = eqx.tree_at(lambda f: f.radius, table, params.radius)
         c = law.coefficients(params)
-        reason, face = _decide_end(faces, g, law, c, t, p, v, kind, support, n, t_end)
+        reason, face, tau = _decide_end(faces, g, law, c, t, p, v, kind, support, n, t_end)
         d = Decision(kind, support, n, reason, face)
-        seg = advance(faces, g, law, c, t, p, v, d, t_end)
-        following = _next_structure(faces, g, law, c, seg, d)
+        seg = advance(faces, g, law, c, t, p, v, d, t_end, tau)
+        *following, goes_on = _next_structure(faces, g, law, c, seg, d)
         record = jax.tree.map(lambda r, x: r.at[k].set(x), record, (d, seg))
-        state = (seg.t1, seg.p1, seg.v1_post) + following
+        state = (seg.t1, seg.p1, seg.v1_post) + tuple(following)
         # The parameters go round the loop through an optimization barrier, so that XLA does
         # not hoist their share of the work out of it (as some 70 separate kernels).
-        return k + 1, state, d.reason == END, record, jax.lax.optimization_barrier((params, t_end))
+        done = jnp.where(goes_on, (d.reason == END).astype(jnp.int32), jnp.int32(-1))  # -1: cannot go on
+        return k + 1, state, done, record, jax.lax.optimization_barrier((params, t_end))
 
     state = (zero, params.position, params.velocity, jnp.int32(FLIGHT), jnp.int32(-1), zero)
-    init = (jnp.int32(0), state, jnp.bool_(False), record, (params, t_end))
+    init = (jnp.int32(0), state, jnp.int32(0), record, (params, t_end))
     count, _, done, (decisions, segments), _ = jax.lax.while_loop(cond, body, init)
     # Unused slots hold the final state, so that sampling past the last segment is exact.
     last = jax.tree.map(lambda x: x[jnp.maximum(count - 1, 0)], segments)
@@ -321,21 +314,24 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     segments = jax.tree.map(
         lambda x, f: jnp.where(unused.reshape((S,) + (1,) * f.ndim), f, x), segments, fill
     )
-    return Plan(decisions=decisions, segments=segments, n_segments=count, complete=done)
+    return Plan(decisions=decisions, segments=segments, n_segments=count, complete=done == 1)
 
 
-def replay(scene: Scene, params, t_end, decisions: Decision, n_used=None) -> Segment:
+def replay(scene: Scene, params, t_end, decisions: Decision, durations, n_used=None) -> Segment:
     """Recompute every segment from the structure, differentiably (a ``lax.scan`` that runs
-    only the first ``n_used`` segments, default all: ``estim.forward._scan``)."""
+    only the first ``n_used`` segments, default all: ``estim.forward._scan``).
+    ``durations``: each segment's duration in the plan (values; the contact times on edges
+    and corners are taken from them, not searched for again)."""
 
     faces = faces_for(scene, params.radius)
     a = jnp.array([0.0, 0.0, -1.0]) * scene.gravity
     law = law_of(scene)
     c = law.coefficients(params)
 
-    def step(state, d):
+    def step(state, item):
         t, p, v = state
-        seg = advance(faces, scene.gravity, law, c, t, p, v, d, t_end)
+        d, found = item
+        seg = advance(faces, scene.gravity, law, c, t, p, v, d, t_end, found)
         return (seg.t1, seg.p1, seg.v1_post), seg
 
     def idle(state):
@@ -349,7 +345,7 @@ def replay(scene: Scene, params, t_end, decisions: Decision, n_used=None) -> Seg
     init = (0.0 * params.e, params.position, params.velocity)
     unused = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.float64(0.0), jnp.int32(END), jnp.int32(-1))
     n_used = decisions.kind.shape[0] if n_used is None else n_used
-    _, segments = scan_used(step, init, decisions, n_used, idle, unused)
+    _, segments = scan_used(step, init, (decisions, durations), n_used, idle, (unused, jnp.float64(0.0)))
     return segments
 
 
@@ -370,8 +366,10 @@ def _segments_of_jvp(primals, tangents):
     scene, params, t_end, decisions, planned, n_used = primals
     d_scene, d_params, d_t_end, _, _, _ = tangents
 
+    durations = jax.lax.stop_gradient(planned.t1 - planned.t0)
+
     def f(s, p, t):
-        return replay(s, p, t, decisions, n_used)
+        return replay(s, p, t, decisions, durations, n_used)
 
     _, d_out = jax.jvp(f, (scene, params, t_end), (d_scene, d_params, d_t_end))
     return planned, d_out

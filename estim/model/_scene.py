@@ -17,23 +17,44 @@ Geoms that MuJoCo itself never collides (``contype="0" conaffinity="0"``) are de
 are skipped, as in MuJoCo. Any other geom (meshes, capsules, static spheres, ...) is an error
 naming the geom: estim never silently ignores geometry a ball could hit.
 
-Contact faces
--------------
-A ball of radius r touches a box when its centre reaches the box grown by r in the L1 norm,
+Contact geometry
+----------------
+A ball of radius r touches a box when its centre reaches the box grown by r,
 
-    P = { q : sum_i max(|q_i - c_i| - h_i, 0) <= r }                      (1)
+    P = { q : || max(|q - c| - h, 0) ||_2 <= r }                            (1)
 
-(c the centre, h the half sizes). P is a convex polytope with 26 faces with outward normals
-m in {-1, 0, 1}^3 \\ {0}: the 6 faces of the box moved out by r (on these the ball touches the
-box exactly as a sphere would, and the top face gives the seed's rule "the centre is over the
-tread and z - r hits the top"), 12 faces bevelling the edges at 45 degrees and 8 corner faces.
-Face m is the plane
+(c the centre, h the half sizes, the max taken per axis): the set of centres at distance
+at most r from the box, its Minkowski sum with the ball. Its boundary is made of 26 pieces,
+one per direction m in {-1, 0, 1}^3 \\ {0} (primary faces first):
 
-    m . (q - c) = sum_i |m_i| h_i + r                                       (2)
+- the 6 *faces* (one nonzero m_i): the box's faces moved out by r, the plane
+  ``m . (q - c) = h_i + r`` over the face's rectangle. On the top face this is the seed's
+  rule: the centre is over the tread and z - r reaches its top;
+- the 12 *edges* (two nonzero m_i): the quarter cylinder of radius r around the box edge
+  ``{q : m_i (q_i - c_i) = h_i where m_i != 0}``, along the edge's length;
+- the 8 *corners* (three nonzero m_i): the eighth of the sphere of radius r around the
+  vertex ``c + m h``.
 
-restricted to the points of P. A face that lies inside a plane's half-space for every
-radius (the bottom of a tread standing on the ground) can never be reached and is dropped
-when the scene is built; this is exact, not an approximation.
+On piece m the outward normal is the unit vector from the nearest box point to the centre,
+``(m_i (q_i - c_i) - h_i) m_i`` over the nonzero axes, normalised: exactly what MuJoCo's
+sphere-box distance (``mj_geomDistance``) returns. Each piece is where it is: the points of
+P's boundary with ``m_i (q_i - c_i) >= h_i`` on the nonzero axes and ``|q_i - c_i| <= h_i``
+on the others (its Voronoi region). Contact times on the curved pieces are roots of
+quartics (``estim.forward._contact``).
+
+A scene can declare instead the *seed's geometry* (``geometry="seed"``): a box is its six
+faces only, with no edges or corners, as in the seed notebook (a tread is its top, under
+the ball's centre). A ball there passes through a box's edges and corners (the seed's golf
+ball passes 4.3 mm into the corner of tread 2 at t = 1.014 s); the seed scene
+``data/scenes/stairs.xml`` declares it so that the seed's numbers hold. In MJCF::
+
+    <custom><text name="estim:geometry" data="seed"/></custom>
+
+(``data="exact"``, the default, is the sphere-box geometry above).
+
+A piece that lies inside a plane's half-space for every radius (the bottom of a tread
+standing on the ground, and its bottom edges and corners) can never be reached and is
+dropped when the scene is built; this is exact, not an approximation.
 """
 
 from __future__ import annotations
@@ -51,7 +72,12 @@ from jaxtyping import Array, Float
 
 from ._air import Air
 
-__all__ = ["Ball", "Scene", "load_scene"]
+__all__ = ["Ball", "Scene", "load_scene", "GEOMETRIES"]
+
+# Contact geometries a scene may declare (module docstring); the first is the default.
+GEOMETRIES = ("exact", "seed")
+# The MJCF <custom><text> name under which a scene declares its geometry.
+GEOMETRY_TEXT = "estim:geometry"
 
 
 class Ball(NamedTuple):
@@ -63,9 +89,9 @@ class Ball(NamedTuple):
     position: tuple[float, float, float]
 
 
-# The 26 face directions of a box grown in the L1 norm, primary faces first: the order
-# breaks ties between faces that a ball reaches at the same instant (a ball landing exactly
-# on a tread edge lands on the tread, as in the seed).
+# The 26 piece directions of a grown box (module docstring), faces first: the order breaks
+# ties between pieces that a ball reaches at the same instant (a ball landing exactly on a
+# tread edge lands on the tread, whose normal is the edge's there).
 _DIRECTIONS = np.array(
     sorted(
         (m for m in itertools.product((-1, 0, 1), repeat=3) if any(m)),
@@ -95,6 +121,8 @@ class Scene(eqx.Module):
         balls: the balls the scene defines.
         air: the air the balls fly through (:class:`estim.Air`), or ``None`` for a vacuum:
             then only gravity acts and :func:`estim.simulate` is exact, in closed form.
+        geometry: static: ``"exact"`` (a box is a box: faces, edges and corners) or
+            ``"seed"`` (a box is its six faces; module docstring).
         law: static: the contact law of every contact (an
             ``estim.forward.laws.AbstractContactLaw``), or ``None`` for the seed's factor
             law (``estim.forward.laws.FactorLaw``: e and mu_t). ``None`` stands for it
@@ -112,6 +140,7 @@ class Scene(eqx.Module):
     balls: tuple[Ball, ...] = eqx.field(static=True, default=())
     air: Air | None = None
     law: object = eqx.field(static=True, default=None)
+    geometry: str = eqx.field(static=True, default="exact")
 
     @property
     def n_boxes(self) -> int:
@@ -138,6 +167,21 @@ class Scene(eqx.Module):
         """The same scene with another contact law (``None``: the seed's factor law)."""
         return dataclasses.replace(self, law=law)
 
+    def with_geometry(self, geometry: str) -> Scene:
+        """The same scene with another contact geometry, ``"exact"`` or ``"seed"``."""
+        return Scene.from_arrays(
+            self._boxes(), self._planes(), gravity=float(self.gravity), balls=self.balls,
+            air=self.air, geometry=geometry,
+        ).with_law(self.law)
+
+    def _boxes(self):
+        return {n: (tuple(map(float, c)), tuple(map(float, h))) for n, c, h in
+                zip(self.names, np.asarray(self.box_centre), np.asarray(self.box_half), strict=False)}
+
+    def _planes(self):
+        return {n: (tuple(map(float, v)), float(o)) for n, v, o in
+                zip(self.names[self.n_boxes:], np.asarray(self.plane_normal), np.asarray(self.plane_offset), strict=True)}
+
     def face_label(self, face: int) -> tuple[str, str]:
         """``(solid name, face)`` of face index ``face``, e.g. ``("step2", "+z")``."""
         solid = self.names[self.face_solid[face]]
@@ -157,6 +201,7 @@ class Scene(eqx.Module):
         gravity: float = 9.81,
         balls: tuple[Ball, ...] = (),
         air: Air | None = None,
+        geometry: str = "exact",
     ) -> Scene:
         """A scene from plain numbers.
 
@@ -167,6 +212,8 @@ class Scene(eqx.Module):
             gravity: magnitude g > 0 (m/s^2); gravity points along -z.
             balls: the balls the scene defines.
             air: the air (drag, wind, Magnus), or ``None`` for gravity only.
+            geometry: ``"exact"`` (faces, edges and corners of every box) or ``"seed"``
+                (faces only; module docstring).
         """
         planes = planes or {}
         if not boxes and not planes:
@@ -184,7 +231,9 @@ class Scene(eqx.Module):
         for name, n in zip(planes, normal, strict=True):
             if not (np.count_nonzero(n) == 1 and abs(np.abs(n).sum() - 1) < 1e-12):
                 raise ValueError(f"plane {name!r}: normal {n} must be a coordinate axis")
-        face_solid, face_direction = _faces(centre, half, normal, offset)
+        if geometry not in GEOMETRIES:
+            raise ValueError(f"unknown contact geometry {geometry!r}: expected one of {GEOMETRIES}")
+        face_solid, face_direction = _faces(centre, half, normal, offset, geometry)
         return Scene(
             box_centre=jnp.asarray(centre),
             box_half=jnp.asarray(half),
@@ -196,6 +245,7 @@ class Scene(eqx.Module):
             face_direction=face_direction,
             balls=tuple(balls),
             air=_checked_air(air),
+            geometry=geometry,
         )
 
 
@@ -217,37 +267,46 @@ def _checked_air(air: Air | None) -> Air | None:
     return air
 
 
-def _faces(centre, half, normal, offset):
-    """Static face table: every reachable face of every box, then one face per plane.
+def _faces(centre, half, normal, offset, geometry):
+    """Static face table: the flat faces of every box, one face per plane, then (exact
+    geometry) the edges and corners of every box; each box's pieces in the order of
+    ``_DIRECTIONS``. Flat faces first, so that the contact search takes them as one slice.
 
-    Face m of box b is unreachable when, for every radius r >= 0, it lies inside the
-    grown half-space ``n . x <= s + r`` of some plane. The face's points are box points of
+    Piece m of box b is unreachable when, for every radius r >= 0, it lies inside the
+    grown half-space ``n . x <= s + r`` of some plane. The piece's points are box points of
     the box face F_m plus at most r in any direction, so this holds iff
     ``max_{x in F_m} n . x <= s`` (the r terms cancel because |n . d| <= r for d in the
-    L1 ball of radius r).
+    ball of radius r).
     """
     face_solid, face_direction = [], []
-    for b in range(centre.shape[0]):
-        for m in _DIRECTIONS:
-            # F_m: the box points maximising m . x; its extreme value along a plane normal n
-            # picks, per axis, the face coordinate where m_i != 0 and the best end otherwise.
-            covered = False
-            for n, s in zip(normal, offset, strict=True):
-                top = 0.0
-                for i in range(3):
-                    if m[i] != 0:
-                        top += n[i] * (centre[b, i] + m[i] * half[b, i])
-                    else:
-                        top += n[i] * centre[b, i] + abs(n[i]) * half[b, i]
-                if top <= s + 1e-12:
-                    covered = True
-                    break
-            if not covered:
-                face_solid.append(b)
-                face_direction.append(tuple(float(v) for v in m))
+    rank = np.abs(_DIRECTIONS).sum(axis=1)
+
+    def pieces(directions):
+        for b in range(centre.shape[0]):
+            for m in directions:
+                # F_m: the box points maximising m . x; its extreme value along a plane normal
+                # n picks, per axis, the face coordinate where m_i != 0 and the best end otherwise.
+                covered = False
+                for n, s in zip(normal, offset, strict=True):
+                    top = 0.0
+                    for i in range(3):
+                        if m[i] != 0:
+                            top += n[i] * (centre[b, i] + m[i] * half[b, i])
+                        else:
+                            top += n[i] * centre[b, i] + abs(n[i]) * half[b, i]
+                    if top <= s + 1e-12:
+                        covered = True
+                        break
+                if not covered:
+                    face_solid.append(b)
+                    face_direction.append(tuple(float(v) for v in m))
+
+    pieces(_DIRECTIONS[rank == 1])
     for p in range(normal.shape[0]):
         face_solid.append(centre.shape[0] + p)
         face_direction.append(tuple(float(v) for v in normal[p]))
+    if geometry == "exact":
+        pieces(_DIRECTIONS[rank >= 2])
     return tuple(face_solid), tuple(face_direction)
 
 
@@ -354,4 +413,21 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
             )
     if not boxes and not planes:
         raise ValueError(f"{source}: the scene has no contact surfaces (box or plane geoms)")
-    return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls), air=air)
+    return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls), air=air,
+                             geometry=_declared_geometry(model, source))
+
+
+def _declared_geometry(model, source: str) -> str:
+    """The geometry an MJCF file declares in ``<custom><text name="estim:geometry"
+    data="..."/></custom>``, ``"exact"`` if it declares none."""
+    import mujoco
+
+    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, GEOMETRY_TEXT)
+    if i < 0:
+        return GEOMETRIES[0]
+    start, size = int(model.text_adr[i]), int(model.text_size[i])
+    value = bytes(model.text_data[start:start + size]).split(b"\0", 1)[0].decode().strip()
+    if value not in GEOMETRIES:
+        raise ValueError(f"{source}: <text name={GEOMETRY_TEXT!r} data={value!r}> declares an unknown "
+                         f"contact geometry; expected one of {GEOMETRIES}")
+    return value

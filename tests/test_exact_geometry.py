@@ -1,0 +1,248 @@
+"""Exact geometry: a ball meets a box as a sphere meets a box (estim.model._scene).
+
+The independent truth is MuJoCo's own geometry: ``mujoco.mj_geomDistance`` between a
+sphere of the ball's radius at each contact and the solid estim names, and the nearest
+point of that solid to the ball's centre, which gives MuJoCo's contact normal. Throws are
+aimed at edges and corners of every box of four scenes (the staircase with exact edges,
+the table drop, a table on a floor, a box rotated a quarter turn about z); the event times
+and their derivatives are checked against finite differences and a closed form.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from conftest import ROOT, G
+
+import estim
+from estim.forward._curved import entering_times
+
+PROBE = '<body name="probe" mocap="true"><geom name="probe" type="sphere" size="0.05" contype="0" conaffinity="0"/></body>'
+
+TABLE = """<mujoco model="table">
+  <option gravity="0 0 -9.81"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="3 3 0.1"/>
+    <geom name="table" type="box" pos="0.2 -0.1 0.71" size="1.37 0.7625 0.05"/>
+    <geom name="post" type="box" pos="1.9 0.6 0.3" size="0.05 0.05 0.3" quat="0.7071068 0 0 0.7071068"/>
+    <geom name="brick" type="box" pos="-1.6 0.5 0.1" size="0.2 0.05 0.1" euler="0 0 90"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _scenes(tmp_path):
+    table = tmp_path / "table.xml"
+    table.write_text(TABLE)
+    return {
+        "stairs_exact": str(ROOT / "data" / "scenes" / "stairs_exact.xml"),
+        "drop": str(ROOT / "data" / "scenes" / "drop.xml"),
+        "table": str(table),
+    }
+
+
+class Measure:
+    """MuJoCo's sphere-box distance and nearest point, with a probe sphere placed anywhere."""
+
+    def __init__(self, path):
+        xml = open(path).read().replace("</worldbody>", PROBE + "</worldbody>")
+        # A scene file's includes and assets are not used by these scenes.
+        self.m = mujoco.MjModel.from_xml_string(xml)
+        self.d = mujoco.MjData(self.m)
+        mujoco.mj_forward(self.m, self.d)
+        self.probe = mujoco.mj_name2id(self.m, mujoco.mjtObj.mjOBJ_GEOM, "probe")
+
+    def geom(self, name):
+        return mujoco.mj_name2id(self.m, mujoco.mjtObj.mjOBJ_GEOM, name)
+
+    def distance(self, q, r, geom):
+        """Signed distance from a sphere of radius r centred at q to ``geom``, and the point
+        of ``geom`` nearest to q."""
+        self.m.geom_size[self.probe, 0] = r
+        self.m.geom_rbound[self.probe] = r
+        self.d.geom_xpos[self.probe] = q
+        fromto = np.zeros(6)
+        dist = mujoco.mj_geomDistance(self.m, self.d, self.probe, geom, 10.0, fromto)
+        return dist, fromto[3:]
+
+
+def _throws(scene, rng, n, g=G):
+    """n throws, each aimed to meet an edge or a corner of a random box at a random point
+    of it, from a random direction into it: the release state, the radius, the time."""
+    curved = [f for f in range(scene.n_faces)
+              if scene.face_solid[f] < scene.n_boxes and sum(map(abs, scene.face_direction[f])) >= 2]
+    c, h = np.asarray(scene.box_centre), np.asarray(scene.box_half)
+    out = []
+    while len(out) < n:
+        f = curved[rng.integers(len(curved))]
+        b, m = scene.face_solid[f], np.array(scene.face_direction[f])
+        r = rng.uniform(0.02, 0.1)
+        anchor = c[b] + m * h[b] + (m == 0) * rng.uniform(-1, 1, 3) * h[b]
+        normal = m * np.abs(rng.normal(size=3))
+        normal /= np.linalg.norm(normal)
+        q = anchor + r * normal
+        tangent = rng.normal(size=3)
+        tangent -= tangent @ normal * normal
+        tangent /= np.linalg.norm(tangent)
+        angle = rng.uniform(0.0, 1.4)
+        v_c = -rng.uniform(0.3, 6.0) * (np.cos(angle) * normal + np.sin(angle) * tangent)
+        t0 = rng.uniform(0.02, 0.3)
+        a = np.array([0.0, 0.0, -g])
+        v0 = v_c - a * t0
+        p0 = q - v0 * t0 - 0.5 * a * t0 * t0
+        out.append((p0, v0, r, t0))
+    return out
+
+
+def _outside(measure, solids, q, r):
+    return min(measure.distance(q, r, g)[0] for g in solids)
+
+
+@pytest.mark.slow
+def test_contacts_touch_the_named_solid_as_mujoco_measures(tmp_path):
+    """At least 1,000 throws at edges and corners over three scenes (the staircase with exact
+    edges, the table drop, a table on a floor with a box rotated a quarter turn about z and
+    one given by Euler angles): at every contact MuJoCo puts the ball touching the solid estim
+    names (|distance| < 1e-9 m) with the same normal (to 1e-9), and at no sampled time is the
+    ball inside any solid."""
+    rng = np.random.default_rng(22)
+    n_curved = n_contacts = 0
+    for name, path in _scenes(tmp_path).items():
+        scene = estim.load_scene(path)
+        assert scene.geometry == "exact"
+        measure = Measure(path)
+        solids = [measure.geom(s) for s in scene.names]
+        throws = [t for t in _throws(scene, rng, 450) if _outside(measure, solids, t[0], t[2]) > 1e-6][:400]
+        p0, v0, r, t0 = (np.array(x) for x in zip(*throws, strict=True))
+        t_end = 0.8
+        ts = np.linspace(0.0, t_end, 41)
+        params = estim.Params(0.6, 0.8, r, p0, v0)
+        traj = estim.simulate(scene, params, t_end, ts=ts, max_events=64, throw=False)
+        ev = traj.events
+        # A bounce series that accumulates on an edge ends with the ball rolling over it,
+        # which estim does not model yet: those few balls stop there, reported incomplete.
+        complete = np.asarray(traj.complete)
+        assert complete.mean() > 0.97, (name, np.flatnonzero(~complete))
+        for i in np.flatnonzero(~complete):
+            last = int(ev.face[i, int(ev.count[i]) - 1])
+            assert sum(map(abs, scene.face_direction[last])) >= 2, (name, i)
+        normals = np.asarray(estim.contact_normals(scene, ev.face, ev.position))
+        for i in range(len(throws)):
+            for k in range(int(ev.count[i])):
+                q, face = np.asarray(ev.position[i, k]), int(ev.face[i, k])
+                solid = scene.names[scene.face_solid[face]]
+                dist, nearest = measure.distance(q, r[i], measure.geom(solid))
+                assert abs(dist) < 1e-9, (name, i, k, solid, dist)
+                expected = (q - nearest) / np.linalg.norm(q - nearest)
+                np.testing.assert_allclose(normals[i, k], expected, rtol=0, atol=1e-9)
+                n_contacts += 1
+                n_curved += sum(map(abs, scene.face_direction[face])) >= 2
+            for q in np.asarray(traj.position[i]) if complete[i] else ():
+                assert _outside(measure, solids, q, r[i]) > -1e-9, (name, i)
+    assert n_curved >= 1000, n_curved
+    assert n_contacts >= n_curved
+
+
+def _edge_throw(scene, dx=0.0):
+    """A ball falling onto the +x top edge of step2 of the exact staircase, 60 degrees
+    round it from the top (its contact normal), slowly enough to meet it."""
+    r = 0.05
+    normal = np.array([np.sin(1.0), 0.0, np.cos(1.0)])
+    q = np.array([0.9, 0.1, 1.2]) + r * normal
+    t0, v_c = 0.2, np.array([-0.5, 0.0, -2.0])
+    a = np.array([0.0, 0.0, -G])
+    v0 = v_c - a * t0
+    return estim.Params(0.7, 0.9, r, q - v0 * t0 - 0.5 * a * t0 * t0 + np.array([dx, 0, 0]), v0), t0, q
+
+
+def test_edge_contact_time_and_bounce_in_closed_form():
+    """A ball that meets a tread edge: the contact time is the one the throw was built with,
+    the normal points from the edge to the centre, and the factor law reflects the
+    velocity's normal part about it (e) and keeps mu_t of its tangential part."""
+    scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
+    params, t0, q = _edge_throw(scene)
+    traj = estim.simulate(scene, params, 0.3)
+    ev = traj.events
+    assert scene.face_label(int(ev.face[0])) == ("step2", "+x+z")
+    np.testing.assert_allclose(float(ev.t[0]), t0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(ev.position[0]), q, rtol=0, atol=1e-12)
+    n = np.asarray(estim.contact_normals(scene, ev.face[0], ev.position[0]))
+    np.testing.assert_allclose(n, [np.sin(1.0), 0.0, np.cos(1.0)], rtol=0, atol=1e-12)
+    v = np.asarray(ev.velocity_pre[0])
+    vn = v @ n * n
+    np.testing.assert_allclose(np.asarray(ev.velocity_post[0]), -0.7 * vn + 0.9 * (v - vn), rtol=0, atol=1e-12)
+
+
+def test_edge_and_corner_event_times_and_their_derivatives_match_finite_differences():
+    """d(event time)/d(release state, radius) at an edge and at a corner of step2: forward
+    autodiff through the quartic's root (the implicit-function formula on a curved surface)
+    against central differences of the root itself."""
+    scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
+    params, _, _ = _edge_throw(scene)
+    corner = np.array([0.9, 0.6, 1.2]) + 0.05 * np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0)
+    v_c = np.array([-0.8, -0.6, -1.5])
+    a = np.array([0.0, 0.0, -G])
+    v0 = v_c - a * 0.15
+    corner_params = estim.Params(0.7, 0.9, 0.05, corner - v0 * 0.15 - 0.5 * a * 0.15**2, v0)
+    for prm, label in ((params, "+x+z"), (corner_params, "+x+y+z")):
+        theta = jnp.concatenate([jnp.asarray(prm.position), jnp.asarray(prm.velocity), jnp.array([0.05])])
+
+        def first_time(th):
+            p = estim.Params(0.7, 0.9, th[6], th[:3], th[3:6])
+            return estim.simulate(scene, p, 0.4, keep=("events",)).events.t[0]
+
+        traj = estim.simulate(scene, prm, 0.4)
+        assert scene.face_label(int(traj.events.face[0]))[1] == label
+        grad = np.asarray(jax.jacfwd(first_time)(theta))
+        eps = 1e-6
+        fd = np.array([(float(first_time(theta.at[k].add(eps))) - float(first_time(theta.at[k].add(-eps)))) / (2 * eps)
+                       for k in range(7)])
+        np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_quartic_roots_never_missed_against_dense_sampling():
+    """entering_times against the sign changes of D on a fine grid, for random parabolas
+    about a cylinder and a sphere, grazes included: the same number of entries, at the same
+    times (to 1e-12 s), none missed (D's roots are also its own check: D = 0 there)."""
+    rng = np.random.default_rng(5)
+    n = 4000
+    mask = np.where(rng.random((n, 1)) < 0.5, np.array([1.0, 0.0, 1.0]), 1.0)
+    A = rng.normal(size=(n, 3)) * 0.3 * mask
+    B = rng.normal(size=(n, 3)) * 2.0 * mask
+    C = np.array([0.0, 0.0, -G / 2]) * mask + rng.normal(size=(n, 3)) * 0.3 * mask
+    r = rng.uniform(0.01, 0.2, n)
+    horizon = np.full(n, 1.0)
+    roots = np.asarray(entering_times(jnp.asarray(A), jnp.asarray(B), jnp.asarray(C), jnp.asarray(r),
+                                      jnp.zeros(n), jnp.asarray(horizon)))
+    t = np.linspace(0.0, 1.0, 200001)
+    for i in range(n):
+        P = A[i] + B[i] * t[:, None] + C[i] * t[:, None] ** 2
+        D = np.sum(P * P, axis=1) - r[i] ** 2
+        falls = np.flatnonzero((D[:-1] > 0) & (D[1:] <= 0))
+        found = roots[i][np.isfinite(roots[i])]
+        assert len(found) == len(falls), (i, found, t[falls])
+        np.testing.assert_allclose(found, t[falls], rtol=0, atol=1e-5 + 1e-12)
+        for tau in found:
+            P = A[i] + B[i] * tau + C[i] * tau**2
+            assert abs(np.sum(P * P) - r[i] ** 2) < 1e-12
+
+
+def test_a_ball_rolling_onto_an_edge_is_reported_not_passed_through():
+    """A ball sliding off a tread top slower than sqrt(g r) would roll over the edge, which
+    estim does not model yet: simulate says so (incomplete) instead of moving the ball
+    through the edge; faster, it flies off the edge and lands on the next tread."""
+    scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
+    r = 0.05
+    fast = estim.Params(0.0, 1.0, r, np.array([0.5, 0.0, 1.2 + r]), np.array([1.0, 0.0, 0.0]))
+    slow = estim.Params(0.0, 1.0, r, np.array([0.5, 0.0, 1.2 + r]), np.array([0.3, 0.0, 0.0]))
+    traj = estim.simulate(scene, fast, 1.0)
+    labels = [scene.face_label(int(f)) for f in np.asarray(traj.events.face)[: int(traj.events.count)]]
+    assert labels[0] == ("step2", "+z") and ("step3", "+z") in labels, labels
+    assert all(len(face) == 2 for _, face in labels), labels  # no edge touched
+    traj = estim.simulate(scene, slow, 2.0, throw=False)
+    assert not bool(traj.complete)
+    with pytest.raises(RuntimeError, match="roll"):
+        estim.simulate(scene, slow, 2.0)
