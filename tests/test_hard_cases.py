@@ -482,8 +482,9 @@ def assert_stops_to_roll(scene, params, t_end, path, ref, tol):
     Every bounce is listed (none is summed: those on an edge are each a segment), so the
     events pair one to one, however short the flights between them. The ODE path follows
     the bounces on the edge to its contact slack (a hop lower than 1 um is a touch for it):
-    there the events before the first on an edge pair one to one, and it stops where the
-    reference does, to 1 um."""
+    there the events before the first on an edge pair one to one, and it stops near where
+    the reference does: at the first hop lower than its slack, where the reference follows
+    the bounces on (they drift 76 um along the fillet in the Zeno case), to 0.1 mm."""
     padded, _ = padded_params(params.e, params.mu_t, params.radius, params.position, params.velocity)
     traj = simulate(scene, padded, t_end, path, ts=padded_ts(np.linspace(0.0, t_end, NT)), throw=False,
                     max_events=256)
@@ -500,7 +501,7 @@ def assert_stops_to_roll(scene, params, t_end, path, ref, tol):
         np.testing.assert_allclose(p[[0, 2]], x[1:3], rtol=0, atol=tol)
         np.testing.assert_allclose(post[[0, 2]], x[5:7], rtol=0, atol=max(tol, 1e-8))
     assert len(ours[-1][4][1]) == 4, ours[-1]  # (on an edge: a label like +x+z)
-    np.testing.assert_allclose(ours[-1][1][[0, 2]], ref.events[-1][1:3], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(ours[-1][1][[0, 2]], ref.events[-1][1:3], rtol=0, atol=1e-6 if path == "closed_form" else 1e-4)
     with pytest.raises(RuntimeError, match="roll over an edge"):
         simulate(scene, params, t_end, path)
     return ours

@@ -131,7 +131,8 @@ SHARDED = textwrap.dedent("""
 
 
 def test_sharded_over_four_devices_matches_one():
-    """The clip axis split over 4 CPU devices gives the unsharded fit to 1e-10."""
+    """The clip axis split over 4 CPU devices gives the unsharded fit to 1e-10 (the shared e,
+    its standard error, each clip's release state; mu_t to 1e-8)."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
     code = SHARDED.format(tests=str(ROOT / "tests"), drop=DROP)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
@@ -139,9 +140,12 @@ def test_sharded_over_four_devices_matches_one():
     one, four = json.loads(out.stdout.strip().splitlines()[-1])
     assert abs(one["shared"]["e"] - four["shared"]["e"]) < 1e-10
     assert abs(one["shared"]["stderr"]["e"] - four["shared"]["stderr"]["e"]) < 1e-10
+    # mu_t, which a drop's few bounces hardly determine, to 1e-8: the one- and four-device
+    # programs round differently, and the fit amplifies it there (2.1e-9 apart in mu_t of
+    # clip c2, session 16, on either contact geometry; 1e-7 of its standard error).
     for label, clip in one["clips"].items():
         for name in ("x0", "z0", "vx0", "mu_t"):
-            assert abs(clip[name] - four["clips"][label][name]) < 1e-10, (label, name)
+            assert abs(clip[name] - four["clips"][label][name]) < (1e-8 if name == "mu_t" else 1e-10), (label, name)
 
 
 def _write_csv(path, clip):
