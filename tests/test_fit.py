@@ -63,6 +63,16 @@ def _near_an_edge(scene, ball, truth):
     return bool(np.any(corner & (np.sum(excess, axis=-1) < spec.radius)))
 
 
+def random_truth(rng):
+    """One draw of the three balls' (e, mu_t, vx0), well away from the fit's defaults;
+    bocce slow and lossy."""
+    return {
+        "bocce": dict(e=rng.uniform(0.45, 0.55), mu_t=rng.uniform(0.88, 0.92), vx0=rng.uniform(0.3, 0.8)),
+        "golf": dict(e=rng.uniform(0.5, 0.9), mu_t=rng.uniform(0.88, 0.99), vx0=rng.uniform(0.9, 1.4)),
+        "pingpong": dict(e=rng.uniform(0.5, 0.9), mu_t=rng.uniform(0.88, 0.99), vx0=rng.uniform(0.9, 1.4)),
+    }
+
+
 def _draw_truth(scene, seed):
     """Parameters well away from the fit's defaults, drawn from the seed; bocce slow and
     lossy so that it goes Zeno (comes to rest on a tread) before T_END. Redrawn while any
@@ -70,11 +80,7 @@ def _draw_truth(scene, seed):
     has no edges, it would pass through it."""
     rng = np.random.default_rng(seed)
     for _ in range(100):
-        truth = {
-            "bocce": dict(e=rng.uniform(0.45, 0.55), mu_t=rng.uniform(0.88, 0.92), vx0=rng.uniform(0.3, 0.8)),
-            "golf": dict(e=rng.uniform(0.5, 0.9), mu_t=rng.uniform(0.88, 0.99), vx0=rng.uniform(0.9, 1.4)),
-            "pingpong": dict(e=rng.uniform(0.5, 0.9), mu_t=rng.uniform(0.88, 0.99), vx0=rng.uniform(0.9, 1.4)),
-        }
+        truth = random_truth(rng)
         events = {b: _events(scene, b, truth[b]) for b in BALLS}
         bevel = any(_near_an_edge(scene, b, truth[b]) for b in BALLS)
         zeno = any(kind == REST for (_, _, kind) in events["bocce"])

@@ -28,11 +28,7 @@ def draw(scene, seed):
     """Truth for ``seed``: bocce goes Zeno; no ball rolls over an edge. Returns it."""
     rng = np.random.default_rng(seed)
     for _ in range(100):
-        truth = {
-            "bocce": dict(e=rng.uniform(0.45, 0.55), mu_t=rng.uniform(0.88, 0.92), vx0=rng.uniform(0.3, 0.8)),
-            "golf": dict(e=rng.uniform(0.5, 0.9), mu_t=rng.uniform(0.88, 0.99), vx0=rng.uniform(0.9, 1.4)),
-            "pingpong": dict(e=rng.uniform(0.5, 0.9), mu_t=rng.uniform(0.88, 0.99), vx0=rng.uniform(0.9, 1.4)),
-        }
+        truth = T.random_truth(rng)
         events = {b: T._events(scene, b, truth[b]) for b in T.BALLS}
         rolls = any(label == ("", "edge") for b in T.BALLS for (_, label, _) in events[b])
         zeno = any(kind == REST for (_, _, kind) in events["bocce"])
