@@ -109,7 +109,7 @@ def test_contacts_touch_the_named_solid_as_mujoco_measures(tmp_path):
     names (|distance| < 1e-9 m) with the same normal (to 1e-9), and at no sampled time is the
     ball inside any solid."""
     rng = np.random.default_rng(22)
-    n_curved = n_contacts = 0
+    n_curved = 0
     for name, path in _scenes(tmp_path).items():
         scene = estim.load_scene(path)
         assert scene.geometry == "exact"
@@ -138,12 +138,10 @@ def test_contacts_touch_the_named_solid_as_mujoco_measures(tmp_path):
                 assert abs(dist) < 1e-9, (name, i, k, solid, dist)
                 expected = (q - nearest) / np.linalg.norm(q - nearest)
                 np.testing.assert_allclose(normals[i, k], expected, rtol=0, atol=1e-9)
-                n_contacts += 1
                 n_curved += sum(map(abs, scene.face_direction[face])) >= 2
             for q in np.asarray(traj.position[i]) if complete[i] else ():
                 assert _outside(measure, solids, q, r[i]) > -1e-9, (name, i)
     assert n_curved >= 1000, n_curved
-    assert n_contacts >= n_curved
 
 
 def _edge_throw(scene, dx=0.0):

@@ -284,6 +284,17 @@ def _curved_time(faces: Faces, anchor, mask, row, p, v, a, start, horizon):
     return jnp.where(now, 0.0, jnp.min(jnp.where(valid, roots, jnp.inf), axis=-1))
 
 
+def parabola_box(p, v, a, h):
+    """The bounding box ``(lo, hi)`` of the parabola ``p + v tau + a tau^2 / 2`` over
+    ``0 <= tau <= h``: per axis, its end points and its apex where that falls inside."""
+    p1, _ = ballistic(p, v, a, h)
+    apex = jnp.where(a != 0, -v / jnp.where(a != 0, a, 1.0), 0.0)
+    inside = (apex > 0) & (apex < h)
+    q_apex, _ = ballistic(p, v, a, jnp.where(inside, apex, 0.0))
+    return (jnp.minimum(jnp.minimum(p, p1), jnp.where(inside, q_apex, p)),
+            jnp.maximum(jnp.maximum(p, p1), jnp.where(inside, q_apex, p)))
+
+
 def _reach_box(faces: Faces):
     """Each piece's box of reach: for an edge or a corner, the box beyond the solid's box by
     at most r along its direction's axes (a superset of the piece), grown by
@@ -299,13 +310,7 @@ def _reach_box(faces: Faces):
 def _reaches(faces: Faces, p, v, a, horizon):
     """Whether the bounding box of the parabola over [0, horizon] meets each piece's box of
     reach (a cheap screen, before ``_reach_window``)."""
-    h = jnp.minimum(horizon, 1e6)
-    p1, _ = ballistic(p, v, a, h)
-    apex = jnp.where(a != 0, -v / jnp.where(a != 0, a, 1.0), 0.0)
-    inside = (apex > 0) & (apex < h)
-    q_apex, _ = ballistic(p, v, a, jnp.where(inside, apex, 0.0))
-    lo = jnp.minimum(jnp.minimum(p, p1), jnp.where(inside, q_apex, p))
-    hi = jnp.maximum(jnp.maximum(p, p1), jnp.where(inside, q_apex, p))
+    lo, hi = parabola_box(p, v, a, jnp.minimum(horizon, 1e6))
     b_lo, b_hi = _reach_box(faces)
     return jnp.all((lo <= b_hi) & (hi >= b_lo), axis=1)
 
@@ -584,12 +589,8 @@ def sweep_clear(faces: Faces, p, v, a, h, margin):
     is at most r). So if the box of the parabola, grown by ``margin``, meets no grown box,
     no contact is possible within the step. Conservative: a ball that touches a solid (just
     bounced off it, or lands within the step) is never clear."""
-    p1, _ = ballistic(p, v, a, h)
-    apex = jnp.where(a != 0, -v / jnp.where(a != 0, a, 1.0), 0.0)
-    inside = (apex > 0) & (apex < h)
-    q_apex, _ = ballistic(p, v, a, jnp.where(inside, apex, 0.0))
-    lo = jnp.minimum(jnp.minimum(p, p1), jnp.where(inside, q_apex, p)) - margin
-    hi = jnp.maximum(jnp.maximum(p, p1), jnp.where(inside, q_apex, p)) + margin
+    lo, hi = parabola_box(p, v, a, h)
+    lo, hi = lo - margin, hi + margin
     meets = jnp.all(lo < faces.hi, axis=1) & jnp.all(hi > faces.lo, axis=1)
     return ~jnp.any(meets)
 
