@@ -225,3 +225,66 @@ def test_slide_along_a_riser_to_its_corner():
     params = estim.Params([0.0], [0.5], [RADIUS], [(2.5977, -0.0507, 0.6928)], [(-27.71, -41.76, -30.09)],
                           mass=[MASS], drag_coefficient=[0.5], spin=[(0.0, 0.0, 0.0)])
     _complete_and_outside(scene, params, 2.0)
+
+
+def test_a_ball_rolls_over_an_edge_in_a_tail_wind():
+    """A ping-pong ball sliding off tread 2 (exact edges) at 0.1 m/s, slower than sqrt(g r),
+    with a 1.5 m/s tail wind: it rolls over the edge on the ODE path (the vector field held
+    on the surface), touching the tread at every sample of the roll (MuJoCo's geometry,
+    |distance| < 1e-9 m), leaves it where the surface's push vanishes, ``-(a . n) -
+    |v|^2 / r = 0`` (a: gravity and the air, the free acceleration), earlier than in a
+    vacuum (the wind pushes it off), and lands on tread 3. The landing's derivatives
+    against central differences."""
+    import mujoco
+
+    path = ROOT / "data" / "scenes" / "stairs_exact.xml"
+    air = Air(density=1.204, viscosity=1.81e-5, wind=(1.5, 0.0, 0.0))
+    scene = estim.load_scene(path).with_air(air)
+    top, edge = 1.2, 0.9
+
+    def params(vx):
+        return estim.Params(0.8, 0.9, RADIUS, jnp.array([0.85, 0.0, top + RADIUS]), jnp.stack([vx, 0.0, 0.0]),
+                            mass=MASS, drag_coefficient=0.5)
+
+    ts = np.linspace(0.0, 1.5, 3001)
+    traj = estim.simulate(scene, params(jnp.float64(0.1)), 1.5, ts=ts, keep=("samples", "events", "solution"))
+    n = int(traj.events.count)
+    labels = [scene.face_label(int(f)) for f in np.asarray(traj.events.face)[:n]]
+    assert labels[1:3] == [("step2", "+x+z"), ("step3", "+z")], labels
+    sol = traj.solution
+    detach = np.flatnonzero(np.asarray(sol.steps.kind) == 6)  # STEP_DETACH
+    assert detach.size == 1
+    t_edge, t_off = float(traj.events.t[1]), float(sol.nodes.t1[detach[0]])
+    p_off, v_off = np.asarray(sol.nodes.p1[detach[0]]), np.asarray(sol.nodes.v1[detach[0]])
+    # Touching the tread all along the roll (MuJoCo's sphere-box distance).
+    xml = open(path).read().replace(
+        "</worldbody>", f'<body name="probe" mocap="true"><geom name="probe" type="sphere" size="{RADIUS}" '
+        'contype="0" conaffinity="0"/></body></worldbody>')
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    probe, step2 = (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name) for name in ("probe", "step2"))
+    rolling = (ts > t_edge) & (ts < t_off)
+    assert rolling.sum() > 20
+    for q in np.asarray(traj.position)[rolling]:
+        d.geom_xpos[probe] = q
+        assert abs(mujoco.mj_geomDistance(m, d, probe, step2, 1.0, np.zeros(6))) < 1e-9, q
+    # It leaves where the surface stops pushing.
+    arm = p_off - np.array([edge, p_off[1], top])
+    normal = arm / np.linalg.norm(arm)
+    a_free = np.asarray(acceleration(air, G, RADIUS, MASS, 0.5, jnp.zeros(3), jnp.asarray(v_off)))
+    across2 = v_off[0] ** 2 + v_off[2] ** 2
+    assert abs(-a_free @ normal - across2 / RADIUS) < 1e-7 * G
+    assert np.linalg.norm(arm) == pytest.approx(RADIUS, abs=1e-12)
+    vacuum = (0.1**2 / (G * RADIUS) + 2.0) / 3.0  # cos theta* without air
+    assert arm[2] / RADIUS > vacuum  # (the wind pushes it off sooner)
+
+    def landing(vx):
+        ev = estim.simulate(scene, params(vx), 1.5, max_events=8).events
+        return jnp.stack([ev.t[2], ev.position[2, 0]])  # (the landing on tread 3)
+
+    vx = jnp.float64(0.1)
+    jac = np.asarray(jax.jacfwd(landing)(vx))
+    eps = 1e-5
+    fd = (np.asarray(landing(vx + eps)) - np.asarray(landing(vx - eps))) / (2 * eps)
+    np.testing.assert_allclose(jac, fd, rtol=1e-4)

@@ -268,11 +268,12 @@ def test_bench_speed_json(capsys):
     # Bytes per ball, counted from the parts (2 sample times, 64 event slots, 48 segments):
     # the final state is 7 numbers and a flag; the events 64 x (t, position, velocity
     # before and after) and 64 x (face, kind) + count + truncated; the dense solution
-    # 48 x 23 numbers, 48 x (kind, support, reason, face) and 48 bounce counts, e, mu_t.
+    # 48 x 26 numbers (a roll's pivot among them), 48 x (kind, support, reason, face) and 48
+    # bounce counts, e, mu_t.
     final = 7 * 8 + 1 * 4
     events = 64 * 10 * 8 + (64 * 2 + 2) * 4
     samples = 2 * 6 * 8
-    solution = (48 * 23 + 48 + 2) * 8 + 48 * 4 * 4
+    solution = (48 * 26 + 48 + 2) * 8 + 48 * 4 * 4
     assert out["batch_row_bytes"] == {"final": final, "events": final + events,
                                       "all": final + events + samples + solution}
     # the floor computes nothing, so it costs less than the forward call it bounds (up to

@@ -40,14 +40,11 @@ def stairs():
 
 
 def _events(scene, ball, truth):
-    """(t, face label, kind) of the exact events of one ball over [0, T_END]; a ball that is
-    incomplete (it would roll over an edge) ends with a label ("", "edge")."""
+    """(t, face label, kind) of the exact events of one ball over [0, T_END]."""
     spec = scene.ball(ball)
     p = estim.Params(truth["e"], truth["mu_t"], spec.radius, spec.position, (truth["vx0"], 0.0, 0.0))
-    traj = estim.simulate(scene, p, T_END, throw=False)
-    ev = traj.events
-    edge = [] if bool(traj.complete) else [(0.0, ("", "edge"), 0)]
-    return [(float(ev.t[i]), scene.face_label(int(ev.face[i])), int(ev.kind[i])) for i in range(int(ev.count))] + edge
+    ev = estim.simulate(scene, p, T_END).events
+    return [(float(ev.t[i]), scene.face_label(int(ev.face[i])), int(ev.kind[i])) for i in range(int(ev.count))]
 
 
 def _near_an_edge(scene, ball, truth):

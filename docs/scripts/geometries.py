@@ -6,9 +6,9 @@ bocce ball that meets an edge (e 0.612, mu_t 0.91, vx0 0.93 m/s, to 2 s), each u
 seed's geometry (``data/scenes/stairs.xml``) and exact geometry
 (``data/scenes/stairs_exact.xml``): the contacts, the final position, and how deep the ball
 comes into a tread (the least distance of its centre from any tread, minus r, sampled every
-0.1 ms; negative: the ball overlaps the tread, passing through its edge), or where it stops
-(a ball that would roll over an edge, which estim does not model yet). The table goes
-between the markers ``TABLE_START`` and ``TABLE_END``; the text around them is kept.
+0.1 ms; negative: the ball overlaps the tread, passing through its edge), and how many
+times it rolls over an edge (estim.forward._roll). The table goes between the markers
+``TABLE_START`` and ``TABLE_END``; the text around them is kept.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import pathlib
 import numpy as np
 
 import estim
+from estim.forward._constants import ROLL
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "pages" / "contact-model.md"
@@ -44,18 +45,15 @@ def _row(scene, ball, e, mu, vx, t_end):
     position = np.array([-0.20, spec.position[1], 1.40 + spec.radius + 0.25])
     params = estim.Params(e, mu, spec.radius, position, np.array([vx, 0.0, 0.0]))
     ts = np.linspace(0.0, t_end, int(round(t_end / 1e-4)) + 1)
-    traj = estim.simulate(scene, params, t_end, ts=ts, max_events=256, throw=False)
+    traj = estim.simulate(scene, params, t_end, ts=ts, max_events=256, keep=("samples", "events", "solution"))
     ev = traj.events
     count = int(ev.count)
     faces = [scene.face_label(int(f)) for f in np.asarray(ev.face)[:count]]
     edges = sum(len(label) > 2 and label != "plane" for _, label in faces)
-    if not bool(traj.complete):  # stopped on an edge: the last event's place and time
-        last = count - 1
-        depth = _depth(scene, np.asarray(traj.position)[ts <= float(ev.t[last])], spec.radius)
-        q = np.asarray(ev.position)[last]
-        return count, edges, q, depth, f"stops at t = {float(ev.t[last]):.4f} s on {faces[last][0]} {faces[last][1]}: rolls over the edge (not modelled)"
+    rolls = int(np.sum(np.asarray(traj.solution.structure.kind) == ROLL))
     q = np.asarray(traj.final.position)
-    return count, edges, q, _depth(scene, np.asarray(traj.position), spec.radius), "complete"
+    status = f"rolls over an edge ({rolls}x)" if rolls else ""
+    return count, edges, q, _depth(scene, np.asarray(traj.position), spec.radius), status
 
 
 def table() -> str:

@@ -44,6 +44,7 @@ import numpy as np
 from .._config import FIT_COMPILE, jit, require_x64
 from ..forward import _ode
 from ..forward._balls import check_outside
+from ..forward._contact import has_edges
 from ..forward._dispatch import ODE, closed_form_plan, path
 from ..forward._ode import OdeSettings
 from ..forward._ode import finish as ode_finish
@@ -131,7 +132,7 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
         return parts["position"], parts["events"], ts
     segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, n_used)
     law = law_of(scene)
-    pos, _ = sample(segs, pl.decisions, law, law.coefficients(params), scene.gravity, ts)
+    pos, _ = sample(segs, pl.decisions, law, law.coefficients(params), scene.gravity, ts, has_edges(scene))
     # The events only count impacts (a report, not differentiated): listed from the plan's
     # values, they stay out of the Jacobian's forward-mode trace.
     c = jax.lax.stop_gradient(law.coefficients(params))

@@ -11,10 +11,18 @@ import numpy as np
 
 from ..model._params import Params
 from ..model._scene import Scene
-from ._constants import INSIDE_DEPTH, TRAIN
+from ._constants import INSIDE_DEPTH, ROLL, TRAIN
+from ._contact import has_edges
 from ._record import layout_of, pack, unpack
 from ._solver import Plan, segments_of
-from ._trajectory import ClosedFormSolution, State, list_events_used, sample, trajectory_parts
+from ._trajectory import (
+    ClosedFormSolution,
+    State,
+    list_events_used,
+    roll_states,
+    sample,
+    trajectory_parts,
+)
 from .laws import law_of
 
 
@@ -54,12 +62,13 @@ def ball_parts(scene: Scene, prm: Params, t_end, ts, pl: Plan, max_events: int, 
     segments = segments_of(scene, prm, t_end, pl.decisions, pl.segments, pl.n_segments)
     pos = vel = events = None  # only what keep keeps is computed
     if "samples" in keep:
-        pos, vel = sample(segments, pl.decisions, law, c, g, ts)
+        pos, vel = sample(segments, pl.decisions, law, c, g, ts, has_edges(scene))
     if "events" in keep:
         events = list_events_used(segments, pl.decisions, law, c, g, max_events, pl.n_segments)
     last = jnp.maximum(pl.n_segments - 1, 0)
     final = State(t_end, segments.p1[last], segments.v1_post[last])
-    solution = ClosedFormSolution(segments=segments, structure=pl.decisions, law=law, coefficients=c, gravity=g)
+    solution = ClosedFormSolution(segments=segments, structure=pl.decisions, law=law, coefficients=c, gravity=g,
+                                  rolls=has_edges(scene))
     complete = pl.complete & stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
     return trajectory_parts(pos, vel, events, final, complete, solution, keep)
 
@@ -100,6 +109,9 @@ def stays_outside(scene: Scene, radius, decisions, segments, n_segments):
     tau = 0.5 * (s.t1 - s.t0)[:, None]
     middle = s.p0 + s.v0 * tau + 0.5 * s.acc * tau * tau
     middle = jnp.where((decisions.kind == TRAIN)[:, None], s.p0, middle)
+    if has_edges(scene):  # (a roll's middle is on its circle)
+        is_roll = decisions.kind == ROLL
+        middle = jnp.where(is_roll[:, None], roll_states(s, is_roll, tau[:, 0], scene.gravity)[0], middle)
     points = jnp.stack([s.p0, middle, s.p1], axis=1).reshape(-1, 3)
     used = jnp.repeat(jnp.arange(s.t0.shape[0]) < n_segments, 3)
     r = jax.lax.stop_gradient(radius)

@@ -59,17 +59,20 @@ LISTED_FLIGHT = 1e-6
 
 # --- How a ball moves in a closed-form segment (Decision.kind), and in an ODE step's mode ---
 # FLIGHT: a parabola (or an integrated flight); TRAIN: a whole bounce series on one face,
-# summed in closed form; SLIDE: moving along (or resting on) a face; UNUSED: a padding slot.
-# The ODE path's mode (Step.mode) is FLIGHT or SLIDE: the same notion.
+# summed in closed form; SLIDE: moving along (or resting on) a face; UNUSED: a padding slot;
+# ROLL: rolling over an edge or a corner (estim.forward._roll; exact geometry only, which
+# the native kernels do not run). The ODE path's mode (Step.mode) is FLIGHT, SLIDE or ROLL:
+# the same notion.
 FLIGHT = 0
 TRAIN = 1
 SLIDE = 2
 UNUSED = 3
+ROLL = 4
 
 # --- Why a closed-form segment ends (Decision.reason) ----------------------------------------
 END = 0  # at t_end
 CONTACT = 1  # at a contact with a face
-EXIT = 2  # sliding off a face's edge
+EXIT = 2  # sliding off a face's edge, or leaving an edge or a corner the ball rolls over
 BOUNCES = 3  # a bounce series ends after its last bounce that provably lands on its face
 SETTLE = 4  # a bounce series accumulates (Zeno): the ball comes to rest or slides
 
@@ -85,6 +88,7 @@ STEP_CONTACT = 2
 STEP_EXIT = 3
 STEP_ZENO = 4
 STEP_UNUSED = 5
+STEP_DETACH = 6  # a roll over an edge or a corner ends where the surface stops pushing
 
 # --- Event kinds (estim.forward._trajectory, Events.kind) ------------------------------------
 IMPACT = 0

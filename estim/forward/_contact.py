@@ -456,6 +456,12 @@ def face_normal(faces: Faces, face):
     return faces.row[face, NORMAL]
 
 
+def has_edges(scene: Scene) -> bool:
+    """Whether a scene's boxes have edges and corners (exact geometry): whether a ball may
+    roll over them (static)."""
+    return scene.geometry == "exact" and scene.n_boxes > 0
+
+
 def is_curved(faces: Faces, face) -> Bool[Array, ""]:
     """Whether face ``face`` is an edge or a corner (a curved piece)."""
     return faces.rank[face] >= 2
@@ -491,6 +497,59 @@ def contact_normals(scene: Scene, face: Int[Array, "*n"], position: Float[Array,
     flat_f, flat_q = face.reshape(-1), position.reshape(-1, 3)
     n = jax.vmap(lambda f, q: contact_normal(faces, jnp.maximum(f, 0), q))(flat_f, flat_q)
     return jnp.where((flat_f >= 0)[:, None], n, 0.0).reshape(position.shape)
+
+
+def roll_axis(faces: Faces, face, p, v):
+    """The horizontal line a ball at p with velocity v, pressed onto curved piece ``face``,
+    rolls about (``estim.forward._roll``): ``(pivot, axis, exact)``, the axis oriented so
+    that ``up x axis`` points away from the solid. On an edge the edge
+    line; on a corner the line through the vertex perpendicular to the vertical plane
+    through the vertex and the ball's centre (or its motion, where the centre is right
+    above the vertex). ``exact`` is false where that is not the ball's motion: an edge
+    that is not horizontal, or a corner where the ball moves out of that plane (a
+    spherical pendulum, not followed)."""
+    anchor, mask = piece_frame(faces)
+    pivot, mask = anchor[face], mask[face]
+    up = jnp.array([0.0, 0.0, 1.0])
+    edge = jnp.sum(mask) == 2
+    flat = jnp.array([1.0, 1.0, 0.0])
+    # The horizontal direction away from the solid: on an edge its direction's horizontal
+    # part; on a corner from the vertex to the centre, or along the motion.
+    m = faces.row[face, DIRECTION] * flat
+    d, w = (p - pivot) * flat, v * flat
+    d_len, w_len = jnp.sqrt(inner(d, d)), jnp.sqrt(inner(w, w))
+    h = jnp.where(d_len > 0, d / jnp.where(d_len > 0, d_len, 1.0), w / jnp.where(w_len > 0, w_len, 1.0))
+    h = jnp.where(edge, m / jnp.sqrt(jnp.maximum(inner(m, m), 1.0)), h)
+    h = jnp.where(inner(h, h) > 0, h, jnp.array([1.0, 0.0, 0.0]))  # (at rest right above a vertex)
+    planar = jnp.abs(d[0] * w[1] - d[1] * w[0]) <= AXIS_TOL * d_len * w_len
+    # The axis with up x axis = h, the direction in which the roll's angle grows.
+    return pivot, jnp.cross(h, up), jnp.where(edge, (mask[2] == 1) & (inner(m, m) == 1), planar)
+
+
+def roll_exit_time(faces: Faces, face, pivot, axis, p, v):
+    """Time at which a ball rolling about edge ``face`` (at p, velocity v) reaches an end
+    of the edge, where a corner begins (inf on a corner, whose roll stays in one plane
+    through its vertex)."""
+    half = jnp.sum(faces.row[face, HALF] * jnp.abs(axis))
+    along, u = inner(p - pivot, axis), inner(v, axis)
+    end = jnp.where(u > 0, half, -half)
+    tau = (end - along) / jnp.where(u != 0, u, 1.0)
+    edge = jnp.sum(1.0 - piece_frame(faces)[1][face]) == 1
+    return jnp.where(edge & (u != 0), jnp.maximum(tau, 0.0), jnp.inf)
+
+
+def next_piece(faces: Faces, face, axis, v):
+    """The piece of the same box that a ball rolling on edge or corner ``face`` moves onto
+    when it leaves that piece's region across ``axis`` (0, 1, 2) with velocity v: past an
+    edge's end, the corner there (the axis gains v's sign); back within the box along an
+    axis where the piece lies beyond it, the piece without that axis (a corner's edge, an
+    edge's face). ``(piece, found)``."""
+    row = faces.row
+    m = row[face, DIRECTION]
+    e = jnp.zeros(3).at[axis].set(1.0)
+    target = m * (1.0 - e) + jnp.where(m[axis] == 0, jnp.sign(inner(v, e)), 0.0) * e
+    match = jnp.all(row[:, DIRECTION] == target, axis=1) & (row[:, SOLID] == row[face, SOLID])
+    return jnp.argmax(match).astype(jnp.int32), jnp.any(match) & jnp.any(target != 0)
 
 
 def face_entering_time(faces: Faces, face, p, v, a, found):

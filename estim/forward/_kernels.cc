@@ -1036,7 +1036,7 @@ enum Field {
   FINAL_T, FINAL_POSITION, FINAL_VELOCITY, COMPLETE,
   POSITION, VELOCITY,
   EVENT_T, EVENT_POSITION, EVENT_PRE, EVENT_POST, EVENT_FACE, EVENT_KIND, EVENT_COUNT, EVENT_TRUNCATED,
-  SEG_T0, SEG_P0, SEG_V0, SEG_ACC, SEG_T1, SEG_P1, SEG_V1, SEG_V1_POST, SEG_NORMAL,
+  SEG_T0, SEG_P0, SEG_V0, SEG_ACC, SEG_T1, SEG_P1, SEG_V1, SEG_V1_POST, SEG_NORMAL, SEG_PIVOT,
   DEC_KIND, DEC_SUPPORT, DEC_N, DEC_REASON, DEC_FACE,
   SOL_E, SOL_MU_T,
   N_FIELDS
@@ -1358,6 +1358,7 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
     for (Field f : {SEG_P0, SEG_P1}) fill3(f, n, S, last.p1);
     for (Field f : {SEG_V0, SEG_V1, SEG_V1_POST}) fill3(f, n, S, last.v1_post);
     for (Field f : {SEG_ACC, SEG_NORMAL}) fill(f, 3 * n, 3 * S, 0.0);
+    fill(SEG_PIVOT, 0, 3 * S, 0.0);  // (no rolls: the seed's geometry has no edges)
     fill_int(DEC_KIND, n, S, UNUSED);
     fill_int(DEC_SUPPORT, n, S, -1);
     fill(DEC_N, n, S, 0.0);

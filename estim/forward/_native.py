@@ -66,7 +66,7 @@ FIELDS = (
     "events.kind", "events.count", "events.truncated",
     "solution.segments.t0", "solution.segments.p0", "solution.segments.v0", "solution.segments.acc",
     "solution.segments.t1", "solution.segments.p1", "solution.segments.v1", "solution.segments.v1_post",
-    "solution.segments.normal",
+    "solution.segments.normal", "solution.segments.pivot",
     "solution.structure.kind", "solution.structure.support", "solution.structure.n",
     "solution.structure.reason", "solution.structure.face",
     "solution.coefficients.e", "solution.coefficients.mu_t",
@@ -190,6 +190,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
         return x.reshape(batch + x.shape[1:])
 
     decisions = Decision(kind, support, count, reason, face)
+    columns["pivot"] = jnp.zeros_like(columns["normal"])  # (no rolls: the kernels run the seed's geometry)
     return Plan(decisions=jax.tree.map(unflat, decisions), segments=jax.tree.map(unflat, Segment(**columns)),
                 n_segments=unflat(n_segments), complete=unflat(complete))
 
@@ -209,7 +210,8 @@ def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: fr
     flag = np.zeros((), bool)
     events = Events(f64(E), f64(E, 3), f64(E, 3), f64(E, 3), i32(E), i32(E), i32(), flag)
     final = State(f64(), f64(3), f64(3))
-    segments = Segment(f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S, 3))
+    segments = Segment(f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S), f64(S, 3), f64(S, 3), f64(S, 3), f64(S, 3),
+                       f64(S, 3))
     structure = Decision(i32(S), i32(S), f64(S), i32(S), i32(S))
     # (The kernels' law: the JAX path's layout for a scene they support.)
     solution = ClosedFormSolution(segments=segments, structure=structure, law=FactorLaw(),

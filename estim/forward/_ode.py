@@ -46,6 +46,17 @@ gravity-only scene) every such series is summed, as in the closed-form solver, a
 bounces are listed as events as there (those whose flight lasts at least 1 us, then a
 settle event). Events and compute stay bounded by ``max_steps``.
 
+Rolls: a ball that meets an edge or a corner without normal speed (or with a hop lower than
+the slack, whose dying bounces the law's ``settle`` stands for), pressed onto it, rolls over
+it (mode ROLL): the vector field keeps the acceleration along the surface and adds the
+centripetal one that holds the centre at distance r from the edge line or the vertex
+(``_vector_field``; the step's end is put back on the surface, ``_onto_piece``), with no
+contact search. The roll ends, found by bisection on the step (``_roll_end``), where the
+surface's push falls to zero (STEP_DETACH: the ball flies on) or the ball leaves the piece's
+region: past an edge's end onto the corner there, from a corner onto an edge, or back onto
+the face above the edge (STEP_EXIT). Over a corner this is the spherical pendulum in full,
+drag included.
+
 Gradients: as in ``estim.forward._solver``, a ``plan`` pass (``lax.while_loop``, no gradients)
 finds the discrete structure and the accepted step sizes; a ``replay`` pass (``lax.scan``)
 recomputes every step differentiably with the same step sizes (discretise-then-
@@ -69,11 +80,14 @@ from ._constants import (
     IMPACT,
     LISTED_FLIGHT,
     MAX_COUNT,
+    ON_FACE_TOL,
     REST,
     REST_SPEED,
+    ROLL,
     SLIDE,
     SPEED_TOL,
     STEP_CONTACT,
+    STEP_DETACH,
     STEP_EXIT,
     STEP_LAST,
     STEP_PLAIN,
@@ -94,6 +108,7 @@ from ._contact import (
     first_contact,
     inner,
     is_curved,
+    next_piece,
     on_face,
     piece_frame,
     slide_exit_time,
@@ -118,6 +133,8 @@ RTOL = 1e-9
 ATOL = 1e-10
 MAX_STEPS = 2048
 NEWTON_ITERATIONS = 6
+# Bisections of a roll step for the end of the roll (a step is at most 1 s: 2^-60 s).
+ROLL_BISECTIONS = 60
 
 # Incremented each time the ODE program is traced: tests use it to check that a scene
 # without air never reaches the ODE solver.
@@ -164,22 +181,71 @@ class OdeSettings(eqx.Module):
 
 def _vector_field(air, gravity, params):
     """``f(y, args)`` for y = (position, velocity); args = (support normal, sliding, wall
-    normal or 0): a sliding ball feels only the part of the acceleration along its face,
-    and, against a wall (a face across its support that it touches), only the part that
-    does not push it into the wall: it slides along both faces while pushed into the wall,
-    and leaves the wall when the rest of the acceleration draws it away. (The field is
-    continuous where the push changes sign.)"""
+    normal or 0, roll): a sliding ball feels only the part of the acceleration along its
+    face, and, against a wall (a face across its support that it touches), only the part
+    that does not push it into the wall: it slides along both faces while pushed into the
+    wall, and leaves the wall when the rest of the acceleration draws it away. (The field
+    is continuous where the push changes sign.) A ball rolling over an edge or a corner
+    (``roll = (rolling, anchor, mask)``, ``estim.forward._curved``'s piece) keeps on it: the
+    acceleration along the surface, plus the centripetal ``-|u|^2 / rho n`` that holds the
+    centre at its distance rho from the edge line or the vertex (u: the velocity across
+    the curve; the surface pushes while ``_roll_push`` is positive)."""
 
     def f(y, args):
-        n_sup, sliding, n_wall = args
+        n_sup, sliding, n_wall, (rolling, anchor, mask) = args
         v = y[3:]
         a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v)
         a = jnp.where(sliding, a - inner(a, n_sup) * n_sup, a)
         push = inner(a, n_wall)  # (written out: a dot would be a library call, estim.forward._contact.inner)
         a = jnp.where(push < 0, a - push * n_wall, a)
+        n, rho, across2 = _on_piece(anchor, mask, y)
+        a = jnp.where(rolling, a - inner(a, n) * n - across2 / rho * n, a)
         return jnp.concatenate([v, a])
 
     return f
+
+
+def _on_piece(anchor, mask, y):
+    """Unit normal n, distance rho from the edge line or vertex, and squared speed across
+    the curve, of a ball at state y on an edge or a corner (harmless off one)."""
+    d = mask * (y[:3] - anchor)
+    dd = inner(d, d)
+    rho_s = jnp.sqrt(jnp.where(dd > 0, dd, 1.0))  # (double where: no NaN derivative at d = 0)
+    n = d / rho_s
+    w = mask * y[3:]
+    return n, rho_s, inner(w, w) - inner(y[3:], n) ** 2
+
+
+def _roll_push(f, roll, y):
+    """The surface's push per unit mass on a ball rolling over an edge or a corner (it
+    leaves the surface where this falls to 0): ``-(a . n) - |u|^2 / rho``, a the free
+    acceleration (gravity and the air)."""
+    _, anchor, mask = roll
+    n, rho, across2 = _on_piece(anchor, mask, y)
+    a = f(y, _free_args(roll))[3:]
+    return -inner(a, n) - across2 / rho
+
+
+def _free_args(roll=None):
+    """Vector-field args of a ball in flight."""
+    anchor = jnp.zeros(3) if roll is None else roll[1]
+    return (jnp.zeros(3), jnp.bool_(False), jnp.zeros(3), (jnp.bool_(False), anchor, jnp.zeros(3)))
+
+
+def _roll_args(faces: Faces, mode, support):
+    """The ``roll`` part of the vector-field args: rolling on piece ``support`` in mode ROLL."""
+    anchor, mask = (x[jnp.maximum(support, 0)] for x in piece_frame(faces))
+    return (mode == ROLL, anchor, jnp.where(mode == ROLL, mask, 0.0))
+
+
+def _onto_piece(roll, r, y):
+    """A rolling ball's state put back on its surface (distance r from the edge line or
+    the vertex, no normal velocity): the integrator keeps the constraint only to its
+    tolerance."""
+    rolling, anchor, mask = roll
+    n, rho, _ = _on_piece(anchor, mask, y)
+    p, v = y[:3], y[3:]
+    return jnp.where(rolling, jnp.concatenate([p + (r - rho) * n, v - inner(v, n) * n]), y)
 
 
 def _rk_step(settings, f, t, h, y, args):
@@ -239,6 +305,50 @@ def _guard_at(guard, q, v):
     rho_s = jnp.where(rho > 0, rho, 1.0)
     return (jnp.where(curved, rho - r, inner(n, q) - big_h),
             jnp.where(curved, inner(d, v) / rho_s, inner(n, v)))
+
+
+def _roll_guards(f, faces: Faces, roll, piece, y):
+    """The guards of a roll over piece ``piece`` at state y: the surface's push
+    (``_roll_push``: the ball leaves the surface where it falls below 0, STEP_DETACH) and
+    the bounds of the piece's region (``_edge_bounds``, passed by ``ON_FACE_TOL``: a ball
+    that starts to roll right on a bound does not leave at once; STEP_EXIT)."""
+    row = faces.row[piece]
+    sigma, beta = _edge_bounds(row)
+    rel = jnp.repeat(y[:3] - row[CENTRE], 2)
+    return _roll_push(f, roll, y), sigma * rel + beta + ON_FACE_TOL
+
+
+def _roll_end(settings, f, faces: Faces, t, y, args, support, h, y1):
+    """Where a roll step of length h from (t, y) to y1 ends: ``(event, kind, face, bound,
+    h, y1)``, the step cut at the first guard of ``_roll_guards`` that it crosses (found by
+    bisection on the step, values only), else as it is. y1 is put back on the surface."""
+    roll = args[3]
+    piece = jnp.maximum(support, 0)
+
+    def at(tau):
+        y_tau, _ = _rk_step(settings, f, t, tau, y, args)
+        return _onto_piece(roll, faces.radius, y_tau)
+
+    def ended(y_tau):
+        push, bounds = _roll_guards(f, faces, roll, piece, y_tau)
+        return (push < 0) | (jnp.min(bounds) < 0)
+
+    def cut():
+        def halve(_, lo_hi):
+            lo, hi = lo_hi
+            mid = 0.5 * (lo + hi)
+            out = ended(at(mid))
+            return jnp.where(out, lo, mid), jnp.where(out, mid, hi)
+
+        _, tau = jax.lax.fori_loop(0, ROLL_BISECTIONS, halve, (0.0 * h, h))
+        y_e = at(tau)
+        push, bounds = _roll_guards(f, faces, roll, piece, y_e)
+        kind = jnp.where(push < 0, STEP_DETACH, STEP_EXIT).astype(jnp.int32)
+        return jnp.bool_(True), kind, piece.astype(jnp.int32), jnp.argmin(bounds).astype(jnp.int32), tau, y_e
+
+    y1 = _onto_piece(roll, faces.radius, y1)
+    return jax.lax.cond(ended(y1), cut,
+                        lambda: (jnp.bool_(False), jnp.int32(STEP_CONTACT), jnp.int32(-1), jnp.int32(0), h, y1))
 
 
 def _exit_bound(faces: Faces, face, q):
@@ -391,7 +501,9 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
                          & (inner(n_w, p) - h_w <= settings.slack), wall, -1)
         on_wall = wall >= 0
         n_wall = jnp.where(on_wall, n_w, 0.0)
-        args = (n_sup, sliding, n_wall)
+        rolling = mode == ROLL
+        roll = _roll_args(faces, mode, support)
+        args = (n_sup, sliding, n_wall, roll)
         a0 = f(y, args)[3:]
 
         # A Zeno series closed in one piece (tried only after a bounce: a branch, since each
@@ -412,14 +524,14 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         a_max, lip = step_bounds(air, g, params.radius, params.mass, params.drag_coefficient, params.spin, v,
                                  h_try)
         margin = lip * a_max * h_try**3 / 6.0 + settings.slack
-        clear = ~sliding & sweep_clear(faces, p, v, a0, h_try, margin)
+        clear = ~sliding & ~rolling & sweep_clear(faces, p, v, a0, h_try, margin)
         # A step that cannot be cleared whole may be in part: its longest clear part (the
         # margin of the whole step still bounds it) is taken where that is at least a
         # tenth of the step, so that a ball nears a solid in long steps, and only the
         # last one, which reaches it, is bounded by the slack.
-        h_part = jax.lax.cond(clear | sliding, lambda: h_try,
+        h_part = jax.lax.cond(clear | sliding | rolling, lambda: h_try,
                               lambda: clear_time(faces, p, v, a0, h_try, margin))
-        part = ~clear & ~sliding & (h_part >= 0.1 * h_try)
+        part = ~clear & ~sliding & ~rolling & (h_part >= 0.1 * h_try)
         h_try = jnp.where(part, h_part, h_try)
         clear = clear | part
 
@@ -451,7 +563,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
             return event, ev_kind.astype(jnp.int32), ev_face.astype(jnp.int32), bound, tau_ev
 
         event, ev_kind, ev_face, bound, tau_ev = jax.lax.cond(
-            clear,
+            clear | rolling,
             lambda: (jnp.bool_(False), jnp.int32(STEP_CONTACT), jnp.int32(-1), jnp.int32(0), jnp.float64(0.0)),
             predict,
         )
@@ -460,23 +572,20 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         y1, y_err = _rk_step(settings, f, t, h_step, y, args)
         scale = settings.atol + settings.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))
         err = jnp.sqrt(jnp.mean((y_err / scale) ** 2))
+        # A roll's end (it leaves the surface, or the piece's region) within the step.
+        event, ev_kind, ev_face, bound, h_step, y1 = jax.lax.cond(
+            rolling,
+            lambda: _roll_end(settings, f, faces, t, y, args, support, h_step, y1),
+            lambda: (event, ev_kind, ev_face, bound, h_step, y1),
+        )
         dev = jnp.linalg.norm(y1[:3] - (p + v * h_step + 0.5 * a0 * h_step**2))
-        keep = ((err <= 1.0) & ((dev <= settings.slack) | clear)) | (h_step <= 0.0) | zeno_ok
+        keep = ((err <= 1.0) & ((dev <= settings.slack) | clear | rolling)) | (h_step <= 0.0) | zeno_ok
         by_error = 0.9 * jnp.where(err > 0, err, 1e-10) ** (-1.0 / order)
         by_slack = 0.9 * (settings.slack / jnp.where(dev > 0, dev, 1e-300)) ** (1.0 / 3.0)
-        factor = jnp.clip(jnp.where(clear, by_error, jnp.minimum(by_error, by_slack)), 0.2, 5.0)
+        factor = jnp.clip(jnp.where(clear | rolling, by_error, jnp.minimum(by_error, by_slack)), 0.2, 5.0)
 
         last = ~event & (h_step >= t_end - t)
         kind = jnp.where(zeno_ok, STEP_ZENO, jnp.where(event, ev_kind, jnp.where(last, STEP_LAST, STEP_PLAIN)))
-        rec = Step(
-            kind.astype(jnp.int32), mode, support, wall.astype(jnp.int32),
-            jnp.where(zeno_ok, pending, jnp.where(event, ev_face, -1)).astype(jnp.int32),
-            # A STEP_ZENO step records in ``bound`` whether the series was cut at t_end (1).
-            jnp.where(zeno_ok, z_cut.astype(jnp.int32), bound), jnp.where(zeno_ok, 0.0, h_step),
-        )
-        # (One slot written, in place: a select of the whole buffer would cost O(max_steps) per step.)
-        steps = jax.tree.map(lambda b, x: b.at[k].set(jnp.where(keep, x, b[k])), steps, rec)
-
         # The state after an accepted step.
         p1, v1 = y1[:3], y1[3:]
         n_face = contact_normal(faces, jnp.maximum(ev_face, 0), p1)
@@ -495,20 +604,42 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         touches = (jnp.abs(w_n) <= REST_SPEED) | (curved & (w_n * w_n <= -2.0 * inner(n_face, a_end) * settings.slack))
         settled = touches & (inner(n_face, a_end) < 0) & ~curved
         # On an edge or a corner: a ball without normal speed that the push into the
-        # surface would hold on it rolls over it (not modelled: the ball stops, incomplete,
-        # as in estim.forward._solver); one that leaves flies on, not meeting that piece
-        # again in this flight.
-        rolls = curved & touches & (
-            inner(n_face, a_end) + across_speed2(faces, jnp.maximum(ev_face, 0), v_post, n_face) / faces.radius < 0)
+        # surface holds on it rolls over it (mode ROLL, the vector field keeping it on the
+        # surface); one that leaves flies on, not meeting that piece again in this flight.
+        # A hop lower than the slack, pressed onto the surface, stands for the bounces that
+        # would follow, a series that dies out: the ball leaves it as the law's limit of
+        # one (``settle``).
+        def pressed(u):
+            return inner(n_face, a_end) + across_speed2(faces, jnp.maximum(ev_face, 0), u, n_face) / faces.radius < 0
+
+        hops = curved & touches & (jnp.abs(w_n) > REST_SPEED) & pressed(v_post)
+        v_post = jnp.where(hops, law.settle(v_post - w_n * n_face, coef), v_post)
+        rolls = curved & touches & pressed(v_post)
         grazed = curved & touches
+        rec = Step(
+            kind.astype(jnp.int32), mode, support, wall.astype(jnp.int32),
+            jnp.where(zeno_ok, pending, jnp.where(event, ev_face, -1)).astype(jnp.int32),
+            # A STEP_ZENO step records in ``bound`` whether the series was cut at t_end (1), a
+            # STEP_CONTACT whether it is such a hop (1).
+            jnp.where(zeno_ok, z_cut.astype(jnp.int32), jnp.where(kind == STEP_CONTACT, hops.astype(jnp.int32), bound)),
+            jnp.where(zeno_ok, 0.0, h_step),
+        )
+        # (One slot written, in place: a select of the whole buffer would cost O(max_steps) per step.)
+        steps = jax.tree.map(lambda b, x: b.at[k].set(jnp.where(keep, x, b[k])), steps, rec)
         meets_wall = sliding & (jnp.abs(jnp.dot(n_face, n_sup)) < AXIS_TOL) & ~curved
-        mode_c = jnp.where(meets_wall | settled, SLIDE, FLIGHT)
+        mode_c = jnp.where(rolls, ROLL, jnp.where(meets_wall | settled, SLIDE, FLIGHT))
         support_c = jnp.where(meets_wall, support, jnp.where(settled | grazed, ev_face, -1))
         # Leaving the wall's face (past its end) keeps the slide on the support.
         off_wall = (kind == STEP_EXIT) & (ev_face == wall) & on_wall
-        new_mode = jnp.select([zeno_ok, kind == STEP_CONTACT, off_wall, kind == STEP_EXIT],
-                              [SLIDE, mode_c, SLIDE, FLIGHT], mode)
-        new_support = jnp.select([zeno_ok, kind == STEP_CONTACT, kind == STEP_EXIT], [pending, support_c, support], support)
+        # A roll that leaves its piece's region goes on over the next piece (past an edge's
+        # end, the corner there), or flies from a face's edge (back on top of the edge: the
+        # face's contact follows at once).
+        onto, onto_ok = next_piece(faces, jnp.maximum(support, 0), bound // 2, y1[3:])
+        onto_ok = rolling & (kind == STEP_EXIT) & onto_ok & (faces.rank[onto] >= 2)
+        new_mode = jnp.select([zeno_ok, kind == STEP_CONTACT, off_wall, onto_ok, (kind == STEP_EXIT) | (kind == STEP_DETACH)],
+                              [SLIDE, mode_c, SLIDE, ROLL, FLIGHT], mode)
+        new_support = jnp.select([zeno_ok, kind == STEP_CONTACT, onto_ok, kind == STEP_EXIT], [pending, support_c, onto, support],
+                                 support)
         new_wall = jnp.where((kind == STEP_CONTACT) & meets_wall, ev_face,
                              jnp.where(zeno_ok | (kind == STEP_EXIT) | (kind == STEP_CONTACT), -1, wall))
         new_pending = jnp.where((kind == STEP_CONTACT) & (mode_c == FLIGHT) & ~curved, ev_face, -1)
@@ -519,7 +650,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         h_rej = jnp.maximum(h_step, 1e-12) * factor
 
         return (
-            jnp.where(keep & rolls, S, i + 1),  # a ball that would roll over an edge stops here
+            i + 1,
             jnp.where(keep, k + 1, k),
             jnp.where(keep, t_new, t),
             jnp.where(keep, y_new, y),
@@ -552,8 +683,10 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         p, v = y[:3], y[3:]
         sliding = st.mode == SLIDE
         n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(st.support, 0)), 0.0)
-        args = (n_sup, sliding, jnp.where(st.wall >= 0, face_normal(faces, jnp.maximum(st.wall, 0)), 0.0))
-        is_event = (st.kind == STEP_CONTACT) | (st.kind == STEP_EXIT)
+        rolling = st.mode == ROLL
+        roll = _roll_args(faces, st.mode, st.support)
+        args = (n_sup, sliding, jnp.where(st.wall >= 0, face_normal(faces, jnp.maximum(st.wall, 0)), 0.0), roll)
+        is_event = (st.kind == STEP_CONTACT) | (st.kind == STEP_EXIT) | (st.kind == STEP_DETACH)
         guard_of = _guard(faces, st.kind, st.face, st.bound)
         # One Newton step at the root found by plan: its value is the root, its derivative
         # the implicit-function event-time sensitivity.
@@ -561,7 +694,9 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
 
         def guard(tau):
             y1, _ = _rk_step(settings, f, t, tau, y, args)
-            return _guard_at(guard_of, y1[:3], y1[3:])[0]
+            flat = _guard_at(guard_of, y1[:3], y1[3:])[0]
+            push, bounds = _roll_guards(f, faces, roll, jnp.maximum(st.face, 0), _onto_piece(roll, faces.radius, y1))
+            return jnp.where(rolling, jnp.where(st.kind == STEP_DETACH, push, bounds[st.bound]), flat)
 
         def newton_step():
             gval, gslope = jax.jvp(guard, (tau_star,), (jnp.ones_like(tau_star),))
@@ -576,9 +711,12 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         tau_event = jax.lax.cond(is_event, newton_step, lambda: tau_star + 0.0 * t)
         h = jnp.select([st.kind == STEP_PLAIN, st.kind == STEP_LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
         y1, _ = _rk_step(settings, f, t, h, y, args)
+        y1 = _onto_piece(roll, faces.radius, y1)
         p1, v1 = y1[:3], y1[3:]
         n_face = contact_normal(faces, jnp.maximum(st.face, 0), p1)
         v_post = jnp.where(st.kind == STEP_CONTACT, law.contact_velocity(v1, n_face, g_vec, c), v1)
+        hop = (st.kind == STEP_CONTACT) & (st.bound == 1)  # (a hop on an edge below the slack, as plan found)
+        v_post = jnp.where(hop, law.settle(v_post - inner(v_post, n_face) * n_face, c), v_post)
         a0 = f(y, args)[3:]
         a1 = f(y1, args)[3:]
         # A Zeno series summed in closed form.
@@ -599,7 +737,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
     def idle(carry):
         """What ``apply`` gives for a STEP_UNUSED slot: a step of length 0."""
         t, y = carry
-        a = f(y, (jnp.zeros(3), jnp.bool_(False), jnp.zeros(3)))[3:]
+        a = f(y, _free_args())[3:]
         return Node(t, y[:3], y[3:], a, t, y[:3], y[3:], a, y[3:])
 
     # 0 * e, not a constant, for a single trace of the body (see estim.forward._solver.replay).

@@ -181,8 +181,9 @@ def simulate(
 
 
 _INCOMPLETE = (
-    "a ball needed more closed-form segments than max_segments, or it would roll over an "
-    "edge or a corner (reached it without normal speed, pressed onto it: not modelled yet), "
+    "a ball needed more closed-form segments than max_segments, or it would roll over a "
+    "corner out of the vertical plane through its vertex (a spherical pendulum: not followed "
+    "in closed form; give the scene air, or a diffrax solver, for the ODE path, which follows it), "
     "or its path entered a solid (a degenerate contact the closed forms missed); increase "
     "max_segments (a ball bouncing where no series can be summed, against an edge or "
     "between walls, takes a segment per bounce), move the ball off the degenerate point, "
@@ -191,9 +192,8 @@ _INCOMPLETE = (
 
 
 _INCOMPLETE_ODE = (
-    "a ball needed more ODE steps than max_steps, or it would roll over an edge or a corner "
-    "(reached it without normal speed, pressed onto it: not modelled yet); increase "
-    "max_steps or loosen rtol/atol, or pass throw=False and inspect Trajectory.complete"
+    "a ball needed more ODE steps than max_steps; increase max_steps or loosen rtol/atol, "
+    "or pass throw=False and inspect Trajectory.complete"
 )
 
 

@@ -15,7 +15,11 @@ The motion of a ball is a sequence of *segments*, each in closed form:
   lands on the same face with nothing in the way (``estim.forward._contact.train_reach``);
 - ``SLIDE``: motion along a face after the bounces have died out (a ball at rest is a
   slide with zero velocity); it ends where the ball slides off the face, at a wall, or at
-  ``t_end``.
+  ``t_end``;
+- ``ROLL``: a ball pressed onto an edge or a corner (exact geometry) rolls over it, its
+  centre on a circle about the edge line: an inverted pendulum in closed form
+  (``estim.forward._roll``); it ends where the ball leaves the edge, comes back onto the
+  face above it, reaches the edge's end, or at ``t_end``.
 
 So the number of segments is bounded by the number of faces a ball visits, not by the
 number of bounces, and compute stays bounded for every e, including e = 0 and e = 1.
@@ -53,8 +57,10 @@ from ._constants import (
     EXIT,
     FLIGHT,
     REST_SPEED,
+    ROLL,
     SETTLE,
     SLIDE,
+    TIE_TIME,
     TRAIN,
     UNUSED,
 )
@@ -69,9 +75,14 @@ from ._contact import (
     first_contact,
     inner,
     is_curved,
+    next_piece,
+    piece_frame,
+    roll_axis,
+    roll_exit_time,
     slide_exit_time,
     train_reach,
 )
+from ._roll import Roll
 from ._scan import scan_used
 from .laws import AbstractContactLaw, law_of, series
 
@@ -101,7 +112,8 @@ class Segment(eqx.Module):
     p1: Float[Array, "3"]
     v1: Float[Array, "3"]  # just before the end (pre-impact at a contact)
     v1_post: Float[Array, "3"]  # just after the end (post-impact at a contact)
-    normal: Float[Array, "3"]  # normal of the face a TRAIN bounces on (else zero)
+    normal: Float[Array, "3"]  # normal of the face a TRAIN bounces on, the axis a ROLL turns about (else zero)
+    pivot: Float[Array, "3"]  # a point of the axis a ROLL turns about (else zero)
 
 
 def _slide_frame(faces, support, v, a):
@@ -165,13 +177,33 @@ def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decis
     p1 = jnp.where(unused, p, jnp.where(is_train, p_tr, p_b))
     v1 = jnp.where(unused, v, jnp.where(is_train, v_tr_end, v_b))
     v1_post = jnp.where(unused, v, jnp.where(is_train, v_tr_end, v_b_post))
+    normal, pivot = jnp.where(is_train, n_sup, 0.0), jnp.zeros(3)
+
+    if faces.curved:  # ROLL: over an edge or a corner, to its end or to t_end
+        is_roll = d.kind == ROLL
+
+        def roll(_):
+            sup = jnp.maximum(d.support, 0)
+            pivot, axis, _ = roll_axis(faces, sup, p, v)
+            motion = Roll(pivot, axis, p, v, g)
+            ends = jnp.minimum(motion.duration, roll_exit_time(faces, sup, pivot, axis, p, v))
+            tau_r = jnp.where(d.reason == END, t_end - t, jnp.where(jnp.isfinite(ends), ends, 0.0))
+            p_r, v_r = motion.state(tau_r)
+            return tau_r, p_r, v_r, axis, pivot
+
+        def no_roll(_):
+            return tau, p1, v1, normal, pivot
+
+        tau, p_r, v_r, normal, pivot = jax.lax.cond(is_roll, roll, no_roll, None)
+        p1, v1, v1_post = p_r, v_r, jnp.where(is_roll, v_r, v1_post)
     t1 = jnp.where(unused, t, t + tau)
-    return Segment(t, p, v0, acc, t1, p1, v1, v1_post, jnp.where(is_train, n_sup, 0.0))
+    return Segment(t, p, v0, acc, t1, p1, v1, v1_post, normal, pivot)
 
 
 def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segment, d: Decision):
     """Kind, support and bounce count of the segment that follows ``seg``, and whether the
-    ball goes on (``False`` where it would roll over an edge or a corner: not modelled)."""
+    ball goes on (``False`` where it would roll over a corner out of a vertical plane
+    through its vertex, or over an edge that is not horizontal: not followed)."""
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     face = jnp.maximum(d.face, 0)
@@ -184,6 +216,8 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
     # where gravity's push into the surface exceeds the centripetal acceleration of its
     # tangential motion across the curve, |u|^2 / r; else it leaves the surface at once.
     rolls = curved & touches & (inner(n_face, a) + across_speed2(faces, face, post, n_face) / faces.radius < 0)
+    # It rolls about a horizontal line (estim.forward._roll), where that is its motion.
+    followed = roll_axis(faces, face, seg.p1, post)[2] if faces.curved else True
     up = (n_face[2] > 1.0 - AXIS_TOL) & ~curved
 
     def on_upward(_):
@@ -206,8 +240,10 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
     stays = (d.kind == SLIDE) & (jnp.abs(inner(n_face, if_support)) < AXIS_TOL) & ~curved
 
     after_contact_kind = jnp.where(stays | settled, SLIDE, jnp.where(up & (n_train >= 1), TRAIN, FLIGHT))
+    after_contact_kind = jnp.where(rolls, ROLL, after_contact_kind)
     # A ball that touches an edge or a corner without normal speed and leaves it does not
-    # meet that piece again in the flight that follows (it is excluded, as a face slid off).
+    # meet that piece again in the flight that follows (it is excluded, as a face slid off);
+    # one that rolls over it rolls on that piece.
     grazed = curved & touches
     after_contact_support = jnp.where(stays | grazed, jnp.where(stays, d.support, face), face)
     kind = jnp.select(
@@ -221,10 +257,24 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
         -1,
     )
     # A FLIGHT keeps as support the face it slid off (excluded from its contacts).
-    keeps = (kind == TRAIN) | (kind == SLIDE) | (d.reason == EXIT) | ((d.reason == CONTACT) & grazed)
+    keeps = (kind == TRAIN) | (kind == SLIDE) | (kind == ROLL) | (d.reason == EXIT) | ((d.reason == CONTACT) & grazed)
     support = jnp.where(keeps, support, -1)
+    if faces.curved:
+        # A roll that reaches the end of its edge goes on over the corner there (a flight
+        # would find the edge, the face above it and the corner all touched at once).
+        sup = jnp.maximum(d.support, 0)
+        pivot, axis, _ = roll_axis(faces, sup, seg.p0, seg.v0)
+        at_end = roll_exit_time(faces, sup, pivot, axis, seg.p1, seg.v1) <= TIE_TIME
+        free = jnp.argmin(piece_frame(faces)[1][sup])  # (an edge's axis)
+        corner, found = next_piece(faces, sup, free, seg.v1)
+        onto = (d.kind == ROLL) & (d.reason == EXIT) & at_end & found
+        on_corner = roll_axis(faces, corner, seg.p1, seg.v1)[2]
+        kind = jnp.where(onto, ROLL, kind)
+        support = jnp.where(onto, corner, support)
+        followed = followed & ~(onto & ~on_corner)
+        rolls = rolls | onto
     n = jnp.where(kind == TRAIN, n_train, 0.0)
-    return kind.astype(jnp.int32), support.astype(jnp.int32), n, ~rolls
+    return kind.astype(jnp.int32), support.astype(jnp.int32), n, ~(rolls & ~followed)
 
 
 def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind, support, n, t_end):
@@ -255,10 +305,22 @@ def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind
         reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
         return reason_t.astype(jnp.int32), jnp.int32(-1), jnp.float64(jnp.inf)
 
-    if not law.summable:  # (no TRAIN segments)
-        return ballistic_end(None)
-    # (lax.cond: for one ball only the end its segment's kind needs is computed.)
-    return jax.lax.cond(is_train, train_end, ballistic_end, None)
+    def roll_end(_):
+        sup = jnp.maximum(support, 0)
+        pivot, axis, _ = roll_axis(faces, sup, p, v)
+        ends = jnp.minimum(Roll(pivot, axis, p, v, g).duration, roll_exit_time(faces, sup, pivot, axis, p, v))
+        reason_r = jnp.where(t + ends >= t_end, END, EXIT)
+        return reason_r.astype(jnp.int32), jnp.int32(-1), jnp.float64(jnp.inf)
+
+    # (lax.switch: for one ball only the end its segment's kind needs is computed.)
+    branches = [ballistic_end]
+    if law.summable:  # (else no TRAIN segments)
+        branches.append(train_end)
+    if faces.curved:  # (else no ROLL segments)
+        branches.append(roll_end)
+    which = jnp.where(is_train, 1, 0) if law.summable else 0
+    which = jnp.where(kind == ROLL, len(branches) - 1, which) if faces.curved else which
+    return jax.lax.switch(which, branches, None) if len(branches) > 1 else ballistic_end(None)
 
 
 class Plan(eqx.Module):
@@ -282,7 +344,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     S = max_segments
     d0 = Decision(jnp.int32(UNUSED), jnp.int32(-1), jnp.float64(0.0), jnp.int32(END), jnp.int32(-1))
     zero, z3 = jnp.float64(0.0), jnp.zeros(3)
-    blank = Segment(zero, z3, z3, z3, zero, z3, z3, z3, z3)  # each slot is written, or filled below
+    blank = Segment(zero, z3, z3, z3, zero, z3, z3, z3, z3, z3)  # each slot is written, or filled below
     record = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), (d0, blank))
 
     def cond(carry):
@@ -309,7 +371,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     count, _, done, (decisions, segments), _ = jax.lax.while_loop(cond, body, init)
     # Unused slots hold the final state, so that sampling past the last segment is exact.
     last = jax.tree.map(lambda x: x[jnp.maximum(count - 1, 0)], segments)
-    fill = Segment(last.t1, last.p1, last.v1_post, z3, last.t1, last.p1, last.v1_post, last.v1_post, z3)
+    fill = Segment(last.t1, last.p1, last.v1_post, z3, last.t1, last.p1, last.v1_post, last.v1_post, z3, z3)
     unused = jnp.arange(S) >= count
     segments = jax.tree.map(
         lambda x, f: jnp.where(unused.reshape((S,) + (1,) * f.ndim), f, x), segments, fill
@@ -337,7 +399,7 @@ def replay(scene: Scene, params, t_end, decisions: Decision, durations, n_used=N
     def idle(state):
         """What ``advance`` gives for an UNUSED slot: the state, unchanged."""
         t, p, v = state
-        return Segment(t, p, v, a, t, p, v, v, jnp.zeros(3))
+        return Segment(t, p, v, a, t, p, v, v, jnp.zeros(3), jnp.zeros(3))
 
     # t starts as 0 * e, not a constant: its tangent and batch axis are then those of the
     # rest of the carry from the start, and JAX traces the scan's body once, not to a

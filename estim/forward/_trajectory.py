@@ -10,11 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
-from ._constants import BOUNCES, CONTACT, LISTED_FLIGHT, REST_SPEED, SETTLE, TRAIN, UNUSED
+from ._constants import BOUNCES, CONTACT, LISTED_FLIGHT, REST_SPEED, ROLL, SETTLE, TRAIN, UNUSED
 from ._constants import IMPACT as IMPACT
 from ._constants import REST as REST
 from ._contact import inner
 from ._record import Layout, layout_of, pack, unpack
+from ._roll import Roll
 from ._scan import scan_used
 from ._solver import Decision, Segment
 from .laws import AbstractContactLaw, series
@@ -71,13 +72,14 @@ class ClosedFormSolution(AbstractSolution):
     """The exact piecewise closed-form solution (gravity only, ``estim.forward._solver``).
 
     Attributes:
-        segments: the segments (flights, bounce series, slides) per ball.
+        segments: the segments (flights, bounce series, slides, rolls) per ball.
         structure: their discrete structure (kinds, faces, bounce counts).
         law: the contact law (static; ``estim.forward.laws``), whose closed forms give the
             state inside a bounce series.
         coefficients: the law's numbers per ball (``law.coefficients``: for the factor law
             ``.e`` and ``.mu_t``).
         gravity: the magnitude g of gravity.
+        rolls: static: whether segments may be rolls over edges (exact geometry).
     """
 
     segments: Segment
@@ -85,12 +87,13 @@ class ClosedFormSolution(AbstractSolution):
     law: AbstractContactLaw = eqx.field(static=True)
     coefficients: PyTree[Float[Array, "*batch"]]
     gravity: Float[Array, ""]
+    rolls: bool = eqx.field(static=True, default=False)
 
     def evaluate(self, t):
         batch = self.segments.t0.shape[:-1]
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(batch):]),
                             (self.segments, self.structure, self.coefficients))
-        fn = jax.vmap(lambda s, d, c: sample(s, d, self.law, c, self.gravity, t))
+        fn = jax.vmap(lambda s, d, c: sample(s, d, self.law, c, self.gravity, t, self.rolls))
         p, v = fn(*flat)
         return p.reshape(batch + p.shape[1:]), v.reshape(batch + v.shape[1:])
 
@@ -263,9 +266,22 @@ def trajectory_parts(position, velocity, events: Events, final: State, complete,
     return parts
 
 
-def sample(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, t):
+def roll_states(seg: Segment, is_roll, tau, g):
+    """Position and velocity ``tau`` after their start of segments ``seg`` that are rolls
+    (``is_roll``; elementwise over a leading axis), from their start, axis and pivot
+    (``estim.forward._roll``). Elsewhere a harmless roll stands in (no NaN in the cotangents
+    of a branch not taken)."""
+    is_roll = is_roll[:, None]
+    axis = jnp.where(is_roll, seg.normal, jnp.array([1.0, 0.0, 0.0]))
+    p0 = jnp.where(is_roll, seg.p0, seg.pivot + jnp.array([0.0, 0.0, 1.0]))
+    v0 = jnp.where(is_roll, seg.v0, jnp.array([0.0, 1.0, 0.0]))
+    return jax.vmap(lambda *a: Roll(*a[:4], g).state(a[4]))(seg.pivot, axis, p0, v0, tau)
+
+
+def sample(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, t, rolls: bool = False):
     """Position and velocity of one ball at times ``t`` from its segments, under the contact
-    law ``law`` with the ball's coefficients ``c``."""
+    law ``law`` with the ball's coefficients ``c``. ``rolls`` (static): whether segments
+    may be ``ROLL`` (a scene with edges and corners: ``estim.forward._contact.has_edges``)."""
     shape = jnp.shape(t)
     t = jnp.reshape(t, (-1,))
     starts = jnp.where(d.kind != UNUSED, seg.t0, jnp.inf)
@@ -279,6 +295,11 @@ def sample(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, t):
     v_bal = s.v0 + s.acc * tau[:, None]
 
     a = jnp.array([0.0, 0.0, -1.0]) * g
+    if rolls:
+        is_roll = (kind == ROLL)[:, None]
+        p_roll, v_roll = roll_states(s, kind == ROLL, tau, g)
+        p_bal = jnp.where(is_roll, p_roll, p_bal)
+        v_bal = jnp.where(is_roll, v_roll, v_bal)
     if not law.summable:  # (no trains)
         return p_bal.reshape(shape + (3,)), v_bal.reshape(shape + (3,))
 
