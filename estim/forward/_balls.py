@@ -111,7 +111,10 @@ def stays_outside(scene: Scene, radius, decisions, segments, n_segments):
     middle = jnp.where((decisions.kind == TRAIN)[:, None], s.p0, middle)
     if has_edges(scene):  # (a roll's middle is on its circle)
         is_roll = decisions.kind == ROLL
-        middle = jnp.where(is_roll[:, None], roll_states(s, is_roll, tau[:, 0], scene.gravity)[0], middle)
+        middle = jax.lax.cond(jnp.any(is_roll),
+                              lambda: jnp.where(is_roll[:, None], roll_states(s, is_roll, tau[:, 0], scene.gravity)[0],
+                                                middle),
+                              lambda: middle)
     points = jnp.stack([s.p0, middle, s.p1], axis=1).reshape(-1, 3)
     used = jnp.repeat(jnp.arange(s.t0.shape[0]) < n_segments, 3)
     r = jax.lax.stop_gradient(radius)

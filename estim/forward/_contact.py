@@ -242,6 +242,13 @@ def piece_frame(faces: Faces):
     return row[:, CENTRE] + m * jnp.where(jnp.isfinite(half), half, 0.0), jnp.abs(m)
 
 
+def piece_at(faces: Faces, face):
+    """``piece_frame`` of one face: its anchor and axis mask."""
+    row = faces.row[face]
+    m, half = row[DIRECTION], row[HALF]
+    return row[CENTRE] + m * jnp.where(jnp.isfinite(half), half, 0.0), jnp.abs(m)
+
+
 def in_piece(q, row) -> Bool[Array, "*f"]:
     """Whether the centre q lies in the Voronoi region of box piece ``row`` (to
     ``ON_FACE_TOL``): beyond the box along its direction's axes, within it along the others."""
@@ -473,8 +480,8 @@ def contact_normal(faces: Faces, face, q):
     flat = faces.row[face, NORMAL]
     if not faces.curved:
         return flat
-    anchor, mask = piece_frame(faces)
-    return jnp.where(is_curved(faces, face), piece_normal(q, anchor[face], mask[face]), flat)
+    anchor, mask = piece_at(faces, face)
+    return jnp.where(is_curved(faces, face), piece_normal(q, anchor, mask), flat)
 
 
 def across_speed2(faces: Faces, face, v, n):
@@ -508,8 +515,7 @@ def roll_axis(faces: Faces, face, p, v):
     above the vertex). ``exact`` is false where that is not the ball's motion: an edge
     that is not horizontal, or a corner where the ball moves out of that plane (a
     spherical pendulum, not followed)."""
-    anchor, mask = piece_frame(faces)
-    pivot, mask = anchor[face], mask[face]
+    pivot, mask = piece_at(faces, face)
     up = jnp.array([0.0, 0.0, 1.0])
     edge = jnp.sum(mask) == 2
     flat = jnp.array([1.0, 1.0, 0.0])
@@ -534,7 +540,7 @@ def roll_exit_time(faces: Faces, face, pivot, axis, p, v):
     along, u = inner(p - pivot, axis), inner(v, axis)
     end = jnp.where(u > 0, half, -half)
     tau = (end - along) / jnp.where(u != 0, u, 1.0)
-    edge = jnp.sum(1.0 - piece_frame(faces)[1][face]) == 1
+    edge = jnp.sum(1.0 - piece_at(faces, face)[1]) == 1
     return jnp.where(edge & (u != 0), jnp.maximum(tau, 0.0), jnp.inf)
 
 
@@ -561,8 +567,8 @@ def face_entering_time(faces: Faces, face, p, v, a, found):
     flat = entering_time(inner(n, p) - h, inner(n, v), inner(n, a))
     if not faces.curved:
         return flat
-    anchor, mask = piece_frame(faces)
-    A, B, C = distance_terms(p, v, a, anchor[face], mask[face])
+    anchor, mask = piece_at(faces, face)
+    A, B, C = distance_terms(p, v, a, anchor, mask)
     found = jax.lax.stop_gradient(jnp.where(jnp.isfinite(found), found, 0.0))
     curved = jnp.where(found > 0, implicit_time(found, A, B, C, faces.radius), 0.0 * found)
     return jnp.where(is_curved(faces, face), curved, flat)

@@ -110,7 +110,7 @@ from ._contact import (
     is_curved,
     next_piece,
     on_face,
-    piece_frame,
+    piece_at,
     slide_exit_time,
     sweep_clear,
     train_reach,
@@ -234,7 +234,7 @@ def _free_args(roll=None):
 
 def _roll_args(faces: Faces, mode, support):
     """The ``roll`` part of the vector-field args: rolling on piece ``support`` in mode ROLL."""
-    anchor, mask = (x[jnp.maximum(support, 0)] for x in piece_frame(faces))
+    anchor, mask = piece_at(faces, jnp.maximum(support, 0))
     return (mode == ROLL, anchor, jnp.where(mode == ROLL, mask, 0.0))
 
 
@@ -291,7 +291,7 @@ def _guard(faces: Faces, kind, face, bound):
     h_exit = sg * row[CENTRE][axis] - jnp.where(jnp.isfinite(bt), bt, 0.0)
     is_exit = kind == STEP_EXIT
     n_face, h_face = faces.normal_offset(f)
-    anchor, mask = (x[f] for x in piece_frame(faces))
+    anchor, mask = piece_at(faces, f)
     curved = ~is_exit & is_curved(faces, f)
     return (jnp.where(is_exit, n_exit, n_face), jnp.where(is_exit, h_exit, h_face), anchor, mask, curved,
             faces.radius)

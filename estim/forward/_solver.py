@@ -76,7 +76,7 @@ from ._contact import (
     inner,
     is_curved,
     next_piece,
-    piece_frame,
+    piece_at,
     roll_axis,
     roll_exit_time,
     slide_exit_time,
@@ -216,8 +216,6 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
     # where gravity's push into the surface exceeds the centripetal acceleration of its
     # tangential motion across the curve, |u|^2 / r; else it leaves the surface at once.
     rolls = curved & touches & (inner(n_face, a) + across_speed2(faces, face, post, n_face) / faces.radius < 0)
-    # It rolls about a horizontal line (estim.forward._roll), where that is its motion.
-    followed = roll_axis(faces, face, seg.p1, post)[2] if faces.curved else True
     up = (n_face[2] > 1.0 - AXIS_TOL) & ~curved
 
     def on_upward(_):
@@ -259,22 +257,28 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
     # A FLIGHT keeps as support the face it slid off (excluded from its contacts).
     keeps = (kind == TRAIN) | (kind == SLIDE) | (kind == ROLL) | (d.reason == EXIT) | ((d.reason == CONTACT) & grazed)
     support = jnp.where(keeps, support, -1)
+    goes_on = jnp.bool_(True)
     if faces.curved:
-        # A roll that reaches the end of its edge goes on over the corner there (a flight
-        # would find the edge, the face above it and the corner all touched at once).
-        sup = jnp.maximum(d.support, 0)
-        pivot, axis, _ = roll_axis(faces, sup, seg.p0, seg.v0)
-        at_end = roll_exit_time(faces, sup, pivot, axis, seg.p1, seg.v1) <= TIE_TIME
-        free = jnp.argmin(piece_frame(faces)[1][sup])  # (an edge's axis)
-        corner, found = next_piece(faces, sup, free, seg.v1)
-        onto = (d.kind == ROLL) & (d.reason == EXIT) & at_end & found
-        on_corner = roll_axis(faces, corner, seg.p1, seg.v1)[2]
-        kind = jnp.where(onto, ROLL, kind)
-        support = jnp.where(onto, corner, support)
-        followed = followed & ~(onto & ~on_corner)
-        rolls = rolls | onto
+        def roll_next(_):
+            """A ball that starts to roll rolls about a horizontal line (estim.forward._roll)
+            where that is its motion; one whose roll reaches the end of its edge goes on
+            over the corner there (a flight would find the edge, the face above it and the
+            corner all touched at once)."""
+            sup = jnp.maximum(d.support, 0)
+            pivot, axis, _ = roll_axis(faces, sup, seg.p0, seg.v0)
+            at_end = roll_exit_time(faces, sup, pivot, axis, seg.p1, seg.v1) <= TIE_TIME
+            free = jnp.argmin(piece_at(faces, sup)[1])  # (an edge's axis)
+            corner, found = next_piece(faces, sup, free, seg.v1)
+            onto = (d.kind == ROLL) & (d.reason == EXIT) & at_end & found
+            piece, u = jnp.where(onto, corner, face), jnp.where(onto, seg.v1, post)
+            followed = roll_axis(faces, piece, seg.p1, u)[2]
+            return jnp.where(onto, ROLL, kind), jnp.where(onto, corner, support), ~(rolls | onto) | followed
+
+        # (lax.cond: for one ball, the work of a roll only where one starts or ends.)
+        kind, support, goes_on = jax.lax.cond(rolls | (d.kind == ROLL), roll_next,
+                                              lambda _: (kind, support, goes_on), None)
     n = jnp.where(kind == TRAIN, n_train, 0.0)
-    return kind.astype(jnp.int32), support.astype(jnp.int32), n, ~(rolls & ~followed)
+    return kind.astype(jnp.int32), support.astype(jnp.int32), n, goes_on
 
 
 def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind, support, n, t_end):
