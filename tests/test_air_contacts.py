@@ -215,8 +215,8 @@ def test_wind_holds_a_ball_against_a_riser():
 
 
 @pytest.mark.xfail(strict=True, reason="open: a ball the wind slides along a riser to the corner where tread "
-                   "and riser end meets the edge ridges there and is reported incomplete (the degenerate "
-                   "corner cases of docs/pages/hard-cases.md)")
+                   "and riser end bounces there between the tread and the riser, a step per bounce, and runs "
+                   "out of max_steps (reported incomplete)")
 def test_slide_along_a_riser_to_its_corner():
     """As above with the wind (-3, 2, 0.5) m/s: the ball slides along the riser towards
     y = 0.6, where tread 5 and the riser of step 4 end together."""

@@ -382,11 +382,15 @@ def first_contact(
     a: Float[Array, "3"],
     exclude: Int[Array, ""],
     also: Int[Array, ""] | int = -1,
+    sliding: Bool[Array, ""] | bool = False,
 ) -> tuple[Float[Array, ""], Int[Array, ""]]:
     """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.
 
     ``exclude`` is a face the ball is sliding on (or -1), ``also`` a second one (a wall it
-    slides along, or -1). Faces reached at the same instant (to ``TIE_TIME``, 1e-12 s) are
+    slides along, or -1). ``sliding``: the ball slides on ``exclude``, so it meets none of
+    that face's own edges and corners (on the face's plane it only touches them, where it
+    slides off the face: its exit, not a contact; a contact there, at a root of a tangent
+    quartic that rounding puts a few nm early, was an impact of 3e-9 m/s). Faces reached at the same instant (to ``TIE_TIME``, 1e-12 s) are
     resolved in favour of faces over edges over corners, so a ball landing exactly where a
     tread's top meets its edge lands on the top (the two have the same normal there).
 
@@ -416,7 +420,10 @@ def first_contact(
         horizon = jnp.min(tau)
         # A cheap screen first (the flight's bounding box against each piece's box of
         # reach), then the exact window of the few it leaves, then their quartics.
+        own = faces.row[jnp.maximum(exclude, 0)]
+        borders = (jnp.sum(pieces.row[:, DIRECTION] * own[DIRECTION], axis=1) == 1) & (pieces.row[:, SOLID] == own[SOLID])
         near = _reaches(pieces, p, v, a, horizon) & (index[k:] != exclude) & (index[k:] != also)
+        near = near & ~(sliding & (exclude >= 0) & borders)
         none = jnp.full(near.shape, jnp.inf)
 
         def search(rows, t0, t1):

@@ -329,25 +329,40 @@ def _roll_end(settings, f, faces: Faces, t, y, args, support, h, y1):
         y_tau, _ = _rk_step(settings, f, t, tau, y, args)
         return _onto_piece(roll, faces.radius, y_tau)
 
-    def ended(y_tau):
-        push, bounds = _roll_guards(f, faces, roll, piece, y_tau)
-        return (push < 0) | (jnp.min(bounds) < 0)
+    def push(y_tau):
+        return _roll_guards(f, faces, roll, piece, y_tau)[0]
 
-    def cut():
+    def bound(y_tau):
+        return jnp.min(_roll_guards(f, faces, roll, piece, y_tau)[1])
+
+    def crossing(guard, crossed):
+        """The first time in the step at which ``guard`` is negative (inf if not at its end;
+        0 if already at its start: past an edge's end the corner asks for the centripetal
+        push of the speed along the edge too, and a ball whose push that makes negative
+        leaves at once)."""
         def halve(_, lo_hi):
             lo, hi = lo_hi
             mid = 0.5 * (lo + hi)
-            out = ended(at(mid))
+            out = guard(at(mid)) < 0
             return jnp.where(out, lo, mid), jnp.where(out, mid, hi)
 
-        _, tau = jax.lax.fori_loop(0, ROLL_BISECTIONS, halve, (0.0 * h, h))
+        tau = jnp.where(guard(y) < 0, 0.0, jax.lax.fori_loop(0, ROLL_BISECTIONS, halve, (0.0 * h, h))[1])
+        return jnp.where(crossed, tau, jnp.inf)
+
+    def cut():
+        # Each guard by a bisection of its own, and the earlier wins: deciding which one a
+        # single bisection stopped on, from signs at its end, is a guess where both are at
+        # rounding's distance from 0.
+        tau_push = crossing(push, push(y1) < 0)
+        tau_bound = crossing(bound, bound(y1) < 0)
+        tau = jnp.minimum(tau_push, tau_bound)
         y_e = at(tau)
-        push, bounds = _roll_guards(f, faces, roll, piece, y_e)
-        kind = jnp.where(push < 0, STEP_DETACH, STEP_EXIT).astype(jnp.int32)
-        return jnp.bool_(True), kind, piece.astype(jnp.int32), jnp.argmin(bounds).astype(jnp.int32), tau, y_e
+        kind = jnp.where(tau_push <= tau_bound, STEP_DETACH, STEP_EXIT).astype(jnp.int32)
+        which = jnp.argmin(_roll_guards(f, faces, roll, piece, y_e)[1]).astype(jnp.int32)
+        return jnp.bool_(True), kind, piece.astype(jnp.int32), which, tau, y_e
 
     y1 = _onto_piece(roll, faces.radius, y1)
-    return jax.lax.cond(ended(y1), cut,
+    return jax.lax.cond((push(y1) < 0) | (bound(y1) < 0), cut,
                         lambda: (jnp.bool_(False), jnp.int32(STEP_CONTACT), jnp.int32(-1), jnp.int32(0), h, y1))
 
 
@@ -537,7 +552,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
 
         def predict():
             """The next event on the step's parabola, and its time on the RK path."""
-            tau_c, face_c = first_contact(faces, p, v, a0, support, wall)
+            tau_c, face_c = first_contact(faces, p, v, a0, support, wall, sliding)
             tau_s = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v, a0), jnp.inf)
             # Past the end of its wall the ball slides on without it.
             tau_w = jnp.where(on_wall, slide_exit_time(faces, jnp.maximum(wall, 0), p, v, a0), jnp.inf)
@@ -704,7 +719,8 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
             # ``_event_time``): an event entered at second order (zero normal speed, tau =
             # 0) has G' ~ 1e-15 from rounding, and dividing by it threw the ball ~1e15 m
             # away (then to NaN) where plan had not moved it.
-            newton = jnp.abs(gslope) > SPEED_TOL
+            # Nor where a roll ends at its start (its guard negative there, not at a root).
+            newton = (jnp.abs(gslope) > SPEED_TOL) & (~rolling | (tau_star > 0))
             return tau_star - jnp.where(newton, gval / jnp.where(newton, gslope, 1.0), 0.0)
 
         # (A branch: each ball replays its own steps, estim.forward._simulate.)

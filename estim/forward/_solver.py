@@ -295,7 +295,7 @@ def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind
         acc = jnp.where(sliding, slide_a, a)
         # A slide's own face, and after sliding off a face that face, are excluded: the ball
         # is on its plane, pressed towards it, but beyond its edge.
-        tau_c, face = first_contact(faces, p, v0, acc, support)
+        tau_c, face = first_contact(faces, p, v0, acc, support, sliding=sliding)
         tau_x = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v0, acc), jnp.inf)
         tau_b = jnp.minimum(tau_c, tau_x)
         reason_b = jnp.where(t + tau_b >= t_end, END, jnp.where(tau_c <= tau_x, CONTACT, EXIT))
