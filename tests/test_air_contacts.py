@@ -16,6 +16,7 @@ The truths:
 import diffrax
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import optimistix as optx
 import pytest
@@ -235,8 +236,6 @@ def test_a_ball_rolls_over_an_edge_in_a_tail_wind():
     |v|^2 / r = 0`` (a: gravity and the air, the free acceleration), earlier than in a
     vacuum (the wind pushes it off), and lands on tread 3. The landing's derivatives
     against central differences."""
-    import mujoco
-
     path = ROOT / "data" / "scenes" / "stairs_exact.xml"
     air = Air(density=1.204, viscosity=1.81e-5, wind=(1.5, 0.0, 0.0))
     scene = estim.load_scene(path).with_air(air)

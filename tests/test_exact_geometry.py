@@ -10,16 +10,18 @@ and their derivatives are checked against finite differences and a closed form.
 
 from __future__ import annotations
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import ROOT, G
+from conftest import ROOT, G, box_distance
 
 import estim
 from estim.forward._constants import ROLL
 from estim.forward._curved import entering_times
+from estim.forward._roll import Roll
 
 PROBE = '<body name="probe" mocap="true"><geom name="probe" type="sphere" size="0.05" contype="0" conaffinity="0"/></body>'
 
@@ -237,8 +239,6 @@ def test_a_ball_sliding_off_a_tread_rolls_over_its_edge(path):
     particle leaving a cylinder, from energy and the normal force: estim.forward._roll),
     at the time the integrated pendulum gives (``test_roll_matches_an_integrator``), and
     lands on the next tread; on both solver paths."""
-    import diffrax
-
     scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
     kw = {"solver": diffrax.Tsit5()} if path == "ode" else {}
     r, top, edge = 0.05, 1.2, 0.9
@@ -309,8 +309,6 @@ def test_roll_matches_an_integrator(theta0, omega0):
     inside it, energy along it; and its derivatives against central differences. The cases
     cover both signs of B = omega0^2 - 4 k sin^2(theta0 / 2) (B > 0: it could pass the
     top; B < 0: it turns), a turn, B = 0 to rounding, and a start from rest."""
-    from estim.forward._roll import Roll
-
     r, k = 0.05, G / 0.05
     pivot, axis = jnp.array([0.3, 0.0, 1.4]), jnp.array([0.0, -1.0, 0.0])  # up x axis = +x
 
@@ -366,10 +364,6 @@ def test_random_slides_off_treads_roll_and_stay_outside(path):
     (reported incomplete, its last segment a roll); the ODE path follows it: every ball
     completes there. (Found by this test: a roll's end decided from the signs at the end of
     one bisection, which rounding can flip, sent a ball 2 cm into a tread.)"""
-    import diffrax
-
-    from conftest import box_distance
-
     scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
     rng = np.random.default_rng(0)
     n = 64

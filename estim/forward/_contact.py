@@ -237,16 +237,17 @@ def on_face(q, centre, half, radius) -> Bool[Array, "*f"]:
 def piece_frame(faces: Faces):
     """Anchor (edge or vertex point) and axis mask of every face as a curved piece
     (``estim.forward._curved``; meaningful for edges and corners only)."""
-    row = faces.row
-    m, half = row[:, DIRECTION], row[:, HALF]
-    return row[:, CENTRE] + m * jnp.where(jnp.isfinite(half), half, 0.0), jnp.abs(m)
+    return _frame_of(faces.row)
 
 
 def piece_at(faces: Faces, face):
     """``piece_frame`` of one face: its anchor and axis mask."""
-    row = faces.row[face]
-    m, half = row[DIRECTION], row[HALF]
-    return row[CENTRE] + m * jnp.where(jnp.isfinite(half), half, 0.0), jnp.abs(m)
+    return _frame_of(faces.row[face])
+
+
+def _frame_of(row):
+    m, half = row[..., DIRECTION], row[..., HALF]
+    return row[..., CENTRE] + m * jnp.where(jnp.isfinite(half), half, 0.0), jnp.abs(m)
 
 
 def in_piece(q, row) -> Bool[Array, "*f"]:
@@ -390,9 +391,10 @@ def first_contact(
     slides along, or -1). ``sliding``: the ball slides on ``exclude``, so it meets none of
     that face's own edges and corners (on the face's plane it only touches them, where it
     slides off the face: its exit, not a contact; a contact there, at a root of a tangent
-    quartic that rounding puts a few nm early, was an impact of 3e-9 m/s). Faces reached at the same instant (to ``TIE_TIME``, 1e-12 s) are
-    resolved in favour of faces over edges over corners, so a ball landing exactly where a
-    tread's top meets its edge lands on the top (the two have the same normal there).
+    quartic that rounding puts a few nm early, was an impact of 3e-9 m/s). Faces reached at
+    the same instant (to ``TIE_TIME``, 1e-12 s) are resolved in favour of faces over edges
+    over corners, so a ball landing exactly where a tread's top meets its edge lands on the
+    top (the two have the same normal there).
 
     Flat faces first, in closed form (equation (2)); then the edges and corners whose box
     of reach the flight meets before that contact (``_reaches``), each by its quartic
