@@ -11,6 +11,7 @@ Importing estim switches JAX's x64 mode on; every helper computes in float64.
 
 from __future__ import annotations
 
+import os
 import pathlib
 import types
 
@@ -20,6 +21,13 @@ import numpy as np
 import pytest
 
 import estim
+
+# The suite runs the command line in-process (estim.app._cli.main), which would switch JAX's
+# persistent compilation cache on for the whole test process: every later compile of the suite
+# would then be serialised into the user's cache, hundreds of programs the user never asked
+# for; and jaxlib 0.10.2's cache writer crashed the suite twice, a segfault in test_pooled.
+# Subprocesses that measure or want the cache ask for it (estim.app._bench, the notebooks).
+os.environ["ESTIM_NO_CACHE"] = "1"
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 STAIRS_XML = ROOT / "data" / "scenes" / "stairs.xml"

@@ -34,6 +34,7 @@ def run_notebook(name: str, out: pathlib.Path) -> subprocess.CompletedProcess:
     env = dict(os.environ, ESTIM_NOTEBOOK_OUT=str(out), ESTIM_NOTEBOOK_FAST="1")
     env.setdefault("MUJOCO_GL", "egl")  # offscreen rendering without a display
     env.pop("DISPLAY", None)  # headless, as in CI: nothing may open a window
+    env.pop("ESTIM_NO_CACHE", None)  # the notebooks switch the cache on, as for a user (conftest)
     proc = subprocess.run([sys.executable, str(NOTEBOOKS / name)], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, f"{name} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-8000:]}"
