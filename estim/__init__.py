@@ -40,6 +40,7 @@ from .forward._trajectory import Trajectory as Trajectory
 from .forward.laws import AbstractContactLaw as AbstractContactLaw
 from .forward.laws import AbstractSummableLaw as AbstractSummableLaw
 from .forward.laws import FactorLaw as FactorLaw
+from .forward.laws import FrictionLaw as FrictionLaw
 from .model._air import Air as Air
 from .model._air import acceleration as acceleration
 from .model._air import air_acceleration as air_acceleration

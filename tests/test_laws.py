@@ -80,8 +80,11 @@ def test_the_laws_say_what_they_are():
     assert isinstance(law_of(scene), FactorLaw)  # the scene names none: the seed's law
     law = SpeedDependentLaw(s0=2.0)
     assert law_of(scene.with_law(law)) is law
+    assert isinstance(law_of(scene.with_law("factor")), FactorLaw)  # a name, as MJCF declares it
+    with pytest.raises(ValueError, match="unknown contact law 'sticky'"):
+        law_of(scene.with_law("sticky"))
     with pytest.raises(TypeError, match="contact law"):
-        law_of(scene.with_law("factor"))
+        law_of(scene.with_law(FactorLaw))  # the class, not a law
 
 
 def hand_drop(h0, vx, e, mu, s0, rest=_constants.REST_SPEED):

@@ -127,7 +127,7 @@ def test_inline_scene(tmp_path):
         np.asarray(scene.box_centre), [[1, 0, 0.25], [-1, 0, 0.5]], atol=1e-12
     )
     assert float(scene.gravity) == pytest.approx(3.7, abs=1e-12)
-    assert scene.balls == (estim.Ball("ball", 0.05, pytest.approx(0.1), (0.0, 0.0, 1.0)),)
+    assert scene.balls == (estim.Ball("ball", 0.05, pytest.approx(0.1), (0.0, 0.0, 1.0), pytest.approx(0.4)),)
 
 
 @pytest.mark.parametrize(

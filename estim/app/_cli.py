@@ -356,6 +356,7 @@ def _cmd_simulate(args) -> int:
 
     scene_path = args.scene or default_scene_path()
     scene = load_scene(scene_path)
+    registry.check_law(scene)
     spec = scene.ball(args.ball)
     values = _simulation_values(args, scene, spec)
     # The limits of the track reader (estim.tracks._csv): beyond them the numbers are not

@@ -541,6 +541,7 @@ def _check_inputs(scene, data, fixed, ball_of=None) -> None:
     detection (masked); anything else must be finite."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be an estim.Scene (estim.load_scene), got {type(scene).__name__}")
+    registry.check_law(scene)
     if not isinstance(data, dict):
         raise TypeError(f"data must be a dict ball -> (t, position), got {type(data).__name__}")
     if not data:

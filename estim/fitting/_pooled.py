@@ -365,6 +365,7 @@ def fit_clips(
             :func:`estim.fit` rejects (named by its label).
     """
     require_x64()
+    registry.check_law(scene)
     say = progress or (lambda msg: None)
     clips = list(clips)
     if len(clips) < 2:

@@ -50,8 +50,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..forward.laws import law_of
 from ..model._params import DRAG_COEFFICIENT, Params
-from ..model._scene import Ball
+from ..model._scene import Ball, Scene
 from ._initial import E_DEFAULT, MU_DEFAULT, Initial
 from ._loss import array_namespace
 
@@ -377,6 +378,22 @@ def starting_values(ball: Ball, initial: Initial, free: Iterable[str]) -> dict[s
 
 def _stack(values):
     return jnp.stack(values) if len(values) > 1 else values[0]
+
+
+def check_law(scene: Scene) -> None:
+    """Refuse a scene whose contact law the registry cannot parametrise: its entries are the
+    parameters of the seed's factor law (e, mu_t) and of the air. A law that couples spin
+    (the friction law: its friction coefficient mu, the ball's inertia, the spin carried
+    through bounces) is simulated by ``estim.simulate`` but not yet fitted, replayed or
+    set from the command line; a fit would hold mu at 0 without saying so."""
+    law = law_of(scene)
+    if law.couples_spin:
+        raise ValueError(
+            f"this scene's contact law ({type(law).__name__}) couples the bounce to the spin; "
+            "estim.simulate follows it, but estim's fits, replays and command-line simulations do "
+            "not set its friction coefficient mu or the spin through bounces yet: use a scene "
+            "that declares no estim:law (the factor law), or estim.simulate with "
+            "Params(..., mu=..., spin=...)")
 
 
 def to_params(values: Mapping[str, Any], *, radius, mass=None, air: bool = True) -> Params:

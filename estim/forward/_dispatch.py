@@ -2,7 +2,9 @@
 the benchmarks.
 
 - ``ODE``: a scene with air (or an explicit ``solver=``) has no closed form; diffrax
-  integrates its flights (``estim.forward._ode``).
+  integrates its flights (``estim.forward._ode``). A contact law that couples spin
+  (``estim.forward.laws.FrictionLaw``) takes it too: the ODE path carries the spin from
+  contact to contact, the closed-form planner does not.
 - ``NATIVE``: the closed form on the native CPU kernels, where they support the scene's
   contact law (``estim.forward._native.supports``) and are built, current, switched on
   and on a CPU backend (``estim.forward._native.active``).
@@ -17,6 +19,7 @@ import contextlib
 from ..model._scene import Scene
 from . import _native, _solver
 from ._solver import Plan
+from .laws import law_of
 
 __all__ = ["NATIVE", "JAX", "ODE", "path", "closed_form_plan", "jax_planner"]
 
@@ -26,7 +29,7 @@ NATIVE, JAX, ODE = "native", "jax", "ode"
 def path(scene: Scene, solver=None) -> str:
     """The path that solves ``scene``: ``ODE``, ``NATIVE`` or ``JAX`` (module docstring).
     ``solver``: a diffrax solver the caller asked for (forces the ODE path)."""
-    if scene.air is not None or solver is not None:
+    if scene.air is not None or solver is not None or law_of(scene).couples_spin:
         return ODE
     return NATIVE if _native.runs(scene) else JAX
 

@@ -29,6 +29,7 @@ import numpy as np
 from ..model._air import Air
 from ..model._params import Params
 from ..model._scene import Scene
+from ._balls import flat_params
 from ._ode import ATOL, RTOL
 from ._simulate import simulate
 from ._trajectory import IMPACT
@@ -153,18 +154,6 @@ def _spin_vectors(spin, velocity: np.ndarray) -> np.ndarray:
     return float(s) * np.cross(u, np.array([0.0, 0.0, 1.0]))
 
 
-def _batched(params: Params) -> Params:
-    """Every field broadcast to the batch, so that all runs share one compiled program."""
-    (n,) = params.batch_shape
-
-    def b(x, shape=()):
-        return jnp.broadcast_to(jnp.asarray(x), (n,) + shape)
-
-    return Params(b(params.e), b(params.mu_t), b(params.radius), b(params.position, (3,)),
-                  b(params.velocity, (3,)), mass=b(params.mass),
-                  drag_coefficient=b(params.drag_coefficient), spin=b(params.spin, (3,)))
-
-
 def _impacts(traj, k: int):
     """Impact times (list per ball) of the first k balls."""
     t = np.asarray(traj.events.t)
@@ -246,7 +235,7 @@ def effect_sizes(
         raise ValueError(f"t_end must be a finite time > 0 (seconds), got {t_end!r}")
     if int(samples) < 2:
         raise ValueError(f"samples must be >= 2, got {samples!r}")
-    params = _batched(params)
+    params = flat_params(params)  # every field per ball: all runs share one compiled program
     (n,) = params.batch_shape
     names = [f"ball {i}" for i in range(n)] if names is None else [str(x) for x in names]
     if len(names) != n:

@@ -57,6 +57,12 @@ region: past an edge's end onto the corner there, from a corner onto an edge, or
 the face above the edge (STEP_EXIT). Over a corner this is the spherical pendulum in full,
 drag included.
 
+Spin: the state is (position, velocity, spin). The spin is constant in flight (it enters the
+Magnus force) and changes only at impacts, by the contact law (``impact`` and
+``settle_spin``): the friction law's bounce depends on it and changes it. A ball that comes to
+slide on a face slides as before (the air along the face, no friction): the friction law's
+``settle_spin`` has left it rolling without slip.
+
 Gradients: as in ``estim.forward._solver``, a ``plan`` pass (``lax.while_loop``, no gradients)
 finds the discrete structure and the accepted step sizes; a ``replay`` pass (``lax.scan``)
 recomputes every step differentiably with the same step sizes (discretise-then-
@@ -180,7 +186,7 @@ class OdeSettings(eqx.Module):
 
 
 def _vector_field(air, gravity, params):
-    """``f(y, args)`` for y = (position, velocity); args = (support normal, sliding, wall
+    """``f(y, args)`` for y = (position, velocity, spin); args = (support normal, sliding, wall
     normal or 0, roll): a sliding ball feels only the part of the acceleration along its
     face, and, against a wall (a face across its support that it touches), only the part
     that does not push it into the wall: it slides along both faces while pushed into the
@@ -193,14 +199,14 @@ def _vector_field(air, gravity, params):
 
     def f(y, args):
         n_sup, sliding, n_wall, (rolling, anchor, mask) = args
-        v = y[3:]
-        a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v)
+        v, w = y[3:6], y[6:]
+        a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, w, v)
         a = jnp.where(sliding, a - inner(a, n_sup) * n_sup, a)
         push = inner(a, n_wall)  # (written out: a dot would be a library call, estim.forward._contact.inner)
         a = jnp.where(push < 0, a - push * n_wall, a)
         n, rho, across2 = _on_piece(anchor, mask, y)
         a = jnp.where(rolling, a - inner(a, n) * n - across2 / rho * n, a)
-        return jnp.concatenate([v, a])
+        return jnp.concatenate([v, a, jnp.zeros_like(w)])  # the spin is constant in flight
 
     return f
 
@@ -212,8 +218,8 @@ def _on_piece(anchor, mask, y):
     dd = inner(d, d)
     rho_s = jnp.sqrt(jnp.where(dd > 0, dd, 1.0))  # (double where: no NaN derivative at d = 0)
     n = d / rho_s
-    w = mask * y[3:]
-    return n, rho_s, inner(w, w) - inner(y[3:], n) ** 2
+    w = mask * y[3:6]
+    return n, rho_s, inner(w, w) - inner(y[3:6], n) ** 2
 
 
 def _roll_push(f, roll, y):
@@ -222,7 +228,7 @@ def _roll_push(f, roll, y):
     acceleration (gravity and the air)."""
     _, anchor, mask = roll
     n, rho, across2 = _on_piece(anchor, mask, y)
-    a = f(y, _free_args(roll))[3:]
+    a = f(y, _free_args(roll))[3:6]
     return -inner(a, n) - across2 / rho
 
 
@@ -244,8 +250,22 @@ def _onto_piece(roll, r, y):
     tolerance."""
     rolling, anchor, mask = roll
     n, rho, _ = _on_piece(anchor, mask, y)
-    p, v = y[:3], y[3:]
-    return jnp.where(rolling, jnp.concatenate([p + (r - rho) * n, v - inner(v, n) * n]), y)
+    p, v = y[:3], y[3:6]
+    return jnp.where(rolling, jnp.concatenate([p + (r - rho) * n, v - inner(v, n) * n, y[6:]]), y)
+
+
+def _contact(law: AbstractContactLaw, touches, v, w, n, g_vec, c):
+    """Velocity and spin after a step's end at v, w: the law's contact state on a face of
+    normal n where the step ends at a contact (``touches``), else as they are."""
+    v_c, w_c = law.contact_state(v, w, n, g_vec, c)
+    return jnp.where(touches, v_c, v), jnp.where(touches, w_c, w)
+
+
+def _settled(law: AbstractContactLaw, hops, v, w, n, c):
+    """Where ``hops``, a hop on an edge lower than the slack: the law's limit of the dying
+    bounces it stands for (``settle_spin``)."""
+    v_s, w_s = law.settle_spin(v - inner(v, n) * n, w, n, c)
+    return jnp.where(hops, v_s, v), jnp.where(hops, w_s, w)
 
 
 def _rk_step(settings, f, t, h, y, args):
@@ -379,7 +399,7 @@ def _event_time(settings, f, t, y, args, guard, tau0):
 
     def g(tau):
         y1, _ = _rk_step(settings, f, t, tau, y, args)
-        return _guard_at(guard, y1[:3], y1[3:])
+        return _guard_at(guard, y1[:3], y1[3:6])
 
     def body(_, tau):
         val, slope = g(tau)
@@ -494,7 +514,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
     none = jnp.int32(-1)
     empty = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, none, jnp.int32(0), jnp.asarray(0.0))
     steps = jax.tree.map(lambda x: jnp.broadcast_to(x, (S,) + x.shape), empty)
-    y0 = jnp.concatenate([params.position, params.velocity])
+    y0 = jnp.concatenate([params.position, params.velocity, params.spin])
     h0 = jnp.minimum(t_end, 1e-3)
     # carry: iteration, records, t, y, mode, support, wall, pending Zeno face, h, done, steps
     init = (jnp.int32(0), jnp.int32(0), jnp.asarray(0.0), y0, jnp.int32(FLIGHT), none, none, none, h0,
@@ -506,7 +526,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
 
     def body(c):
         i, k, t, y, mode, support, wall, pending, h, _, steps = c
-        p, v = y[:3], y[3:]
+        p, v, w = y[:3], y[3:6], y[6:]
         sliding = mode == SLIDE
         n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(support, 0)), 0.0)
         # A wall the ball has moved away from (or that an event step left within the slack
@@ -519,7 +539,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         rolling = mode == ROLL
         roll = _roll_args(faces, mode, support)
         args = (n_sup, sliding, n_wall, roll)
-        a0 = f(y, args)[3:]
+        a0 = f(y, args)[3:6]
 
         # A Zeno series closed in one piece (tried only after a bounce: a branch, since each
         # ball runs its own loop, estim.forward._simulate).
@@ -536,8 +556,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         # box, grown by that bound, meets no solid cannot touch one (``sweep_clear``); then
         # no contact is searched for. A sliding ball keeps the slack bound (its face's
         # edges are its events).
-        a_max, lip = step_bounds(air, g, params.radius, params.mass, params.drag_coefficient, params.spin, v,
-                                 h_try)
+        a_max, lip = step_bounds(air, g, params.radius, params.mass, params.drag_coefficient, w, v, h_try)
         margin = lip * a_max * h_try**3 / 6.0 + settings.slack
         clear = ~sliding & ~rolling & sweep_clear(faces, p, v, a0, h_try, margin)
         # A step that cannot be cleared whole may be in part: its longest clear part (the
@@ -585,8 +604,9 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         h_step = jnp.where(event, tau_ev, h_try)
 
         y1, y_err = _rk_step(settings, f, t, h_step, y, args)
-        scale = settings.atol + settings.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))
-        err = jnp.sqrt(jnp.mean((y_err / scale) ** 2))
+        # (The error of position and velocity: the spin's is 0, constant in flight.)
+        scale = settings.atol + settings.rtol * jnp.maximum(jnp.abs(y[:6]), jnp.abs(y1[:6]))
+        err = jnp.sqrt(jnp.mean((y_err[:6] / scale) ** 2))
         # A roll's end (it leaves the surface, or the piece's region) within the step.
         event, ev_kind, ev_face, bound, h_step, y1 = jax.lax.cond(
             rolling,
@@ -602,16 +622,16 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         last = ~event & (h_step >= t_end - t)
         kind = jnp.where(zeno_ok, STEP_ZENO, jnp.where(event, ev_kind, jnp.where(last, STEP_LAST, STEP_PLAIN)))
         # The state after an accepted step.
-        p1, v1 = y1[:3], y1[3:]
+        p1, v1, w1 = y1[:3], y1[3:6], y1[6:]
         n_face = contact_normal(faces, jnp.maximum(ev_face, 0), p1)
-        v_post = jnp.where(kind == STEP_CONTACT, law.contact_velocity(v1, n_face, g_vec, coef), v1)
+        v_post, w_post = _contact(law, kind == STEP_CONTACT, v1, w1, n_face, g_vec, coef)
         # It slides on the face if it has no normal speed left and is pushed into the face:
         # by gravity in a vacuum, by gravity and the air here (so a ball that the wind
         # holds against a wall slides along it, instead of touching it again at every step).
         # (The acceleration at the end of the step, before the contact: the solver's last
         # stage. After it the normal speed is at most REST_SPEED, so the air's part barely
         # changes.)
-        a_end = f(y1, args)[3:]
+        a_end = f(y1, args)[3:6]
         curved = (kind == STEP_CONTACT) & is_curved(faces, jnp.maximum(ev_face, 0))
         # (On an edge or a corner a hop lower than the contact slack is a touch: the step's
         # prediction cannot resolve it, and a missed landing let a ball fall through a tread.)
@@ -628,7 +648,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
             return inner(n_face, a_end) + across_speed2(faces, jnp.maximum(ev_face, 0), u, n_face) / faces.radius < 0
 
         hops = curved & touches & (jnp.abs(w_n) > REST_SPEED) & pressed(v_post)
-        v_post = jnp.where(hops, law.settle(v_post - w_n * n_face, coef), v_post)
+        v_post, w_post = _settled(law, hops, v_post, w_post, n_face, coef)
         rolls = curved & touches & pressed(v_post)
         grazed = curved & touches
         rec = Step(
@@ -649,7 +669,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         # A roll that leaves its piece's region goes on over the next piece (past an edge's
         # end, the corner there), or flies from a face's edge (back on top of the edge: the
         # face's contact follows at once).
-        onto, onto_ok = next_piece(faces, jnp.maximum(support, 0), bound // 2, y1[3:])
+        onto, onto_ok = next_piece(faces, jnp.maximum(support, 0), bound // 2, v1)
         onto_ok = rolling & (kind == STEP_EXIT) & onto_ok & (faces.rank[onto] >= 2)
         new_mode = jnp.select([zeno_ok, kind == STEP_CONTACT, off_wall, onto_ok, (kind == STEP_EXIT) | (kind == STEP_DETACH)],
                               [SLIDE, mode_c, SLIDE, ROLL, FLIGHT], mode)
@@ -659,7 +679,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
                              jnp.where(zeno_ok | (kind == STEP_EXIT) | (kind == STEP_CONTACT), -1, wall))
         new_pending = jnp.where((kind == STEP_CONTACT) & (mode_c == FLIGHT) & ~curved, ev_face, -1)
         t_new = jnp.where(zeno_ok, t + z_dur, t + h_step)
-        y_new = jnp.where(zeno_ok, jnp.concatenate([p + z_travel, z_vel]), jnp.concatenate([p1, v_post]))
+        y_new = jnp.where(zeno_ok, jnp.concatenate([p + z_travel, z_vel, w]), jnp.concatenate([p1, v_post, w_post]))
         # After an event step the proposal stands (the event cut the step short).
         h_new = jnp.where(event | zeno_ok, h, jnp.maximum(h_step, 1e-12) * factor)
         h_rej = jnp.maximum(h_step, 1e-12) * factor
@@ -695,7 +715,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
 
     def apply(carry, st: Step):
         t, y = carry
-        p, v = y[:3], y[3:]
+        p, v, w = y[:3], y[3:6], y[6:]
         sliding = st.mode == SLIDE
         n_sup = jnp.where(sliding, face_normal(faces, jnp.maximum(st.support, 0)), 0.0)
         rolling = st.mode == ROLL
@@ -709,7 +729,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
 
         def guard(tau):
             y1, _ = _rk_step(settings, f, t, tau, y, args)
-            flat = _guard_at(guard_of, y1[:3], y1[3:])[0]
+            flat = _guard_at(guard_of, y1[:3], y1[3:6])[0]
             push, bounds = _roll_guards(f, faces, roll, jnp.maximum(st.face, 0), _onto_piece(roll, faces.radius, y1))
             return jnp.where(rolling, jnp.where(st.kind == STEP_DETACH, push, bounds[st.bound]), flat)
 
@@ -728,13 +748,13 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         h = jnp.select([st.kind == STEP_PLAIN, st.kind == STEP_LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
         y1, _ = _rk_step(settings, f, t, h, y, args)
         y1 = _onto_piece(roll, faces.radius, y1)
-        p1, v1 = y1[:3], y1[3:]
+        p1, v1, w1 = y1[:3], y1[3:6], y1[6:]
         n_face = contact_normal(faces, jnp.maximum(st.face, 0), p1)
-        v_post = jnp.where(st.kind == STEP_CONTACT, law.contact_velocity(v1, n_face, g_vec, c), v1)
+        v_post, w_post = _contact(law, st.kind == STEP_CONTACT, v1, w1, n_face, g_vec, c)
         hop = (st.kind == STEP_CONTACT) & (st.bound == 1)  # (a hop on an edge below the slack, as plan found)
-        v_post = jnp.where(hop, law.settle(v_post - inner(v_post, n_face) * n_face, c), v_post)
-        a0 = f(y, args)[3:]
-        a1 = f(y1, args)[3:]
+        v_post, w_post = _settled(law, hop, v_post, w_post, n_face, c)
+        a0 = f(y, args)[3:6]
+        a1 = f(y1, args)[3:6]
         # A Zeno series summed in closed form.
         zeno = st.kind == STEP_ZENO
         _, _, z_dur, z_travel, z_vel = jax.lax.cond(
@@ -747,22 +767,23 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         p1 = jnp.where(zeno, p + z_travel, p1)
         v1 = jnp.where(zeno, z_vel, v1)
         v_post = jnp.where(zeno, z_vel, v_post)
+        w_post = jnp.where(zeno, w, w_post)
         node = Node(t, p, v, jnp.where(zeno, g_vec, a0), t1, p1, v1, jnp.where(zeno, g_vec, a1), v_post)
-        return (t1, jnp.concatenate([p1, v_post])), node
+        return (t1, jnp.concatenate([p1, v_post, w_post])), node
 
     def idle(carry):
         """What ``apply`` gives for a STEP_UNUSED slot: a step of length 0."""
         t, y = carry
-        a = f(y, _free_args())[3:]
-        return Node(t, y[:3], y[3:], a, t, y[:3], y[3:], a, y[3:])
+        a = f(y, _free_args())[3:6]
+        return Node(t, y[:3], y[3:6], a, t, y[:3], y[3:6], a, y[3:6])
 
     # 0 * e, not a constant, for a single trace of the body (see estim.forward._solver.replay).
-    init = (0.0 * params.e, jnp.concatenate([params.position, params.velocity]))
+    init = (0.0 * params.e, jnp.concatenate([params.position, params.velocity, params.spin]))
     none = jnp.int32(-1)
     unused = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, none, jnp.int32(0), jnp.float64(0.0))
     n_used = steps.kind.shape[0] if n_used is None else n_used
     (t1, y1), nodes = scan_used(apply, init, steps, n_used, idle, unused)
-    return State(t1, y1[:3], y1[3:]), nodes
+    return State(t1, y1[:3], y1[3:6]), nodes
 
 
 def sample(nodes: Node, steps: Step, faces_normal_of, law: AbstractContactLaw, c, g, t):

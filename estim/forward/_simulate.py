@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._config import CLOSED_FORM_COMPILE, ODE_COMPILE, jit, keep_loop, require_x64, top_level
-from ..model._params import PARAM_CHECKS, Params, check_t_end
+from ..model._params import FRICTION_CHECKS, PARAM_CHECKS, Params, check_t_end
 from ..model._scene import Scene
 from . import _native, _ode
 from ._balls import ball_parts, check_outside, flat_params, inside, map_balls
@@ -210,17 +210,20 @@ def solve_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
 
 
 def _check_effects(scene: Scene, params: Params) -> None:
-    """What the air needs (a mass), and what only the air gives meaning to (spin)."""
+    """What the air needs (a mass), and what only the air or a law that couples spin gives
+    meaning to (spin)."""
     if scene.air is not None and params.mass is None:
         raise ValueError(
             "this scene has air (drag), which needs each ball's mass: build the parameters "
             "with Params.for_ball(scene, ...) or pass Params(..., mass=...)"
         )
-    if scene.air is None and not isinstance(params.spin, jax.core.Tracer):
+    if scene.air is None and not law_of(scene).couples_spin and not isinstance(params.spin, jax.core.Tracer):
         if np.any(np.asarray(params.spin) != 0):
             raise ValueError(
-                "Params.spin is set but the scene has no air, so there is no Magnus force: "
-                "add <option density=...> to the scene (or Scene.with_air) or drop the spin"
+                "Params.spin is set but the scene has no air and its contact law ignores spin, so "
+                "the spin changes nothing: add <option density=...> to the scene (Magnus), declare "
+                "the friction law (<custom><text name=\"estim:law\" data=\"friction\"/></custom>), "
+                "or drop the spin"
             )
 
 
@@ -301,7 +304,7 @@ _INPUT_CHECKS = tuple(message for message, _ in PARAM_CHECKS) + (
     "t_end must be a finite time > 0 (seconds)",
     "ts must be finite and lie in [0, t_end]",
     "a ball starts inside a solid: release it outside every solid",
-)
+) + tuple(message for message, _ in FRICTION_CHECKS)
 
 
 def _input_code(scene: Scene, prm: Params, t_end, ts):
@@ -312,5 +315,5 @@ def _input_code(scene: Scene, prm: Params, t_end, ts):
         ~(jnp.isfinite(t_end) & (t_end > 0)),
         ~jnp.all(jnp.isfinite(ts) & (ts >= 0) & (ts <= t_end)),
         jnp.any(inside_box) | jnp.any(inside_plane),
-    ])
+    ] + [~jnp.all(ok(prm)) for _, ok in FRICTION_CHECKS])
     return jnp.where(jnp.any(bad), jnp.argmax(bad) + 1, 0).astype(jnp.int32)

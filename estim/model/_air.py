@@ -20,8 +20,10 @@ MuJoCo's ``viscosity`` option asks for it). (3) is the Magnus lift
 ``F = (1/2) rho A C_L |w|^2`` along ``omega x w / |omega x w|`` with the lift coefficient of
 Sawicki, Hubbard & Stronge (Am. J. Phys. 71, 1152 (2003)): C_L = 1.5 S for S < 0.1 and
 0.09 + 0.6 S above, continuous at S = 0.1. Written with kappa = C_L / S the force is smooth
-in omega and w, and zero without spin. Spin is taken constant: the torque of the air on the
-ball changes it over seconds, and the contact model has no spin transfer at impacts.
+in omega and w, and zero without spin. Spin is constant in flight: the torque of the air on
+the ball changes it over seconds (no decay is modelled). At impacts the scene's contact law
+may change it (the friction law does: ``estim.forward.laws.FrictionLaw``; the ODE path carries
+the spin from contact to contact).
 
 How MuJoCo's own ``<option density viscosity wind>`` maps to this: MuJoCo's default
 ("inertia") fluid model replaces a body by the box of equal inertia; for a solid sphere of

@@ -17,6 +17,8 @@ __all__ = ["Params"]
 # Drag coefficient of a smooth sphere at Reynolds numbers 1e3-2e5 (ping-pong to bocce in
 # flight); see estim.model._air.
 DRAG_COEFFICIENT = 0.47
+# I / (m r^2) of a solid sphere; a thin spherical shell (a table-tennis ball) has 2/3.
+SOLID_INERTIA = 0.4
 
 
 def _concrete(x) -> bool:
@@ -49,8 +51,14 @@ class Params(eqx.Module):
             takes it from the scene), else ``None``.
         drag_coefficient: C_D >= 0 of the quadratic drag (``estim.model._air``), 0.47 (a
             smooth sphere) by default; used only in a scene with air.
-        spin: angular velocity (rad/s), shape ``(*batch, 3)``, for the Magnus force; zero by
-            default, and it must stay zero in a scene without air, where it has no effect.
+        spin: angular velocity (rad/s), shape ``(*batch, 3)``, at release: for the Magnus
+            force, and for a contact law that couples spin (``estim.forward.laws.FrictionLaw``);
+            zero by default, and it must stay zero in a scene where it has no effect.
+        mu: Coulomb friction coefficient mu >= 0 of a contact law with friction
+            (``estim.forward.laws.FrictionLaw``); 0 (frictionless) by default.
+        inertia: the ball's moment of inertia as a ratio ``I / (m r^2)``, in (0, 1]: 2/5
+            for a solid sphere (the default), 2/3 for a thin shell; ``Params.for_ball``
+            takes it from the scene (the ball body's inertia).
 
     Impossible values (NaN, e outside [0, 1], r <= 0, ...) raise ``ValueError`` here when
     the values are concrete, and inside ``jit`` when :func:`estim.simulate` runs.
@@ -64,9 +72,11 @@ class Params(eqx.Module):
     mass: Float[Array, "*batch"] | None
     drag_coefficient: Float[Array, "*batch"]
     spin: Float[Array, "*batch 3"]
+    mu: Float[Array, "*batch"]
+    inertia: Float[Array, "*batch"]
 
     def __init__(self, e, mu_t, radius, position, velocity, *, mass=None,
-                 drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0)):
+                 drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0), mu=0.0, inertia=SOLID_INERTIA):
         self.e = _float64("e", e)
         self.mu_t = _float64("mu_t", mu_t)
         self.radius = _float64("radius", radius)
@@ -75,6 +85,8 @@ class Params(eqx.Module):
         self.mass = None if mass is None else _float64("mass", mass)
         self.drag_coefficient = _float64("drag_coefficient", drag_coefficient)
         self.spin = _float64("spin", spin)
+        self.mu = _float64("mu", mu)
+        self.inertia = _float64("inertia", inertia)
 
     def __check_init__(self):
         for name in ("position", "velocity", "spin"):
@@ -83,7 +95,8 @@ class Params(eqx.Module):
                 raise ValueError(f"Params.{name} must have a last axis of length 3 (x, y, z), got shape {x.shape}")
         fields = {"e": self.e.shape, "mu_t": self.mu_t.shape, "radius": self.radius.shape,
                   "position": self.position.shape[:-1], "velocity": self.velocity.shape[:-1],
-                  "drag_coefficient": self.drag_coefficient.shape, "spin": self.spin.shape[:-1]}
+                  "drag_coefficient": self.drag_coefficient.shape, "spin": self.spin.shape[:-1],
+                  "mu": self.mu.shape, "inertia": self.inertia.shape}
         if self.mass is not None:
             fields["mass"] = self.mass.shape
         try:
@@ -100,6 +113,8 @@ class Params(eqx.Module):
             ("velocity", self.velocity, lambda x: np.isfinite(x), "must be finite"),
             ("drag_coefficient", self.drag_coefficient, lambda x: x >= 0, "must be >= 0"),
             ("spin", self.spin, lambda x: np.isfinite(x), "must be finite"),
+            ("mu", self.mu, lambda x: x >= 0, "must be >= 0"),
+            ("inertia", self.inertia, lambda x: (x > 0) & (x <= 1), "must lie in (0, 1] (I / (m r^2))"),
         )
         if self.mass is not None:
             checks += (("mass", self.mass, lambda x: x > 0, "must be > 0 (kg)"),)
@@ -116,7 +131,7 @@ class Params(eqx.Module):
             self.e.shape, self.mu_t.shape, self.radius.shape,
             self.position.shape[:-1], self.velocity.shape[:-1],
             () if self.mass is None else self.mass.shape,
-            self.drag_coefficient.shape, self.spin.shape[:-1],
+            self.drag_coefficient.shape, self.spin.shape[:-1], self.mu.shape, self.inertia.shape,
         )
 
     @classmethod
@@ -131,16 +146,17 @@ class Params(eqx.Module):
         position=None,
         drag_coefficient=None,
         spin=(0.0, 0.0, 0.0),
+        mu=0.0,
     ) -> Params:
-        """Parameters of the scene's ball ``ball`` (radius and mass from the scene); the
-        release position defaults to the ball's position in the scene file."""
+        """Parameters of the scene's ball ``ball`` (radius, mass and inertia from the
+        scene); the release position defaults to the ball's position in the scene file."""
         spec = scene.ball(ball)
         if position is None:
             position = spec.position
         if drag_coefficient is None:
             drag_coefficient = DRAG_COEFFICIENT
         return cls(e, mu_t, spec.radius, position, velocity, mass=spec.mass,
-                   drag_coefficient=drag_coefficient, spin=spin)
+                   drag_coefficient=drag_coefficient, spin=spin, mu=mu, inertia=spec.inertia)
 
 
 # The checks of ``Params.__check_init__`` as they run inside ``jit``: a message and what
@@ -154,6 +170,12 @@ PARAM_CHECKS = (
     ("mass must be > 0", lambda p: True if p.mass is None else p.mass > 0),
     ("drag_coefficient must be >= 0", lambda p: p.drag_coefficient >= 0),
     ("spin must be finite", lambda p: jnp.isfinite(p.spin)),
+)
+# Those of the parameters only a contact law with friction reads (the native kernels, which
+# run the factor law alone, do not check them; estim.forward._simulate lists them last).
+FRICTION_CHECKS = (
+    ("mu must be >= 0", lambda p: p.mu >= 0),
+    ("inertia must lie in (0, 1]", lambda p: (p.inertia > 0) & (p.inertia <= 1)),
 )
 
 

@@ -52,6 +52,14 @@ ball passes 4.3 mm into the corner of tread 2 at t = 1.014 s); the seed scene
 
 (``data="exact"``, the default, is the sphere-box geometry above).
 
+A scene declares its *contact law* the same way (``estim.forward.laws``; ``Scene.law``)::
+
+    <custom><text name="estim:law" data="friction"/></custom>
+
+``"factor"`` (the seed's law: restitution e, tangential factor mu_t) is the law of a scene
+that declares none; ``"friction"`` is Coulomb friction at the contact point, with spin
+(restitution e, friction coefficient mu; ``estim.forward.laws.FrictionLaw``).
+
 A piece that lies inside a plane's half-space for every radius (the bottom of a tread
 standing on the ground, and its bottom edges and corners) can never be reached and is
 dropped when the scene is built; this is exact, not an approximation.
@@ -78,15 +86,22 @@ __all__ = ["Ball", "Scene", "load_scene", "GEOMETRIES"]
 GEOMETRIES = ("exact", "seed")
 # The MJCF <custom><text> name under which a scene declares its geometry.
 GEOMETRY_TEXT = "estim:geometry"
+# Contact laws a scene may declare by name (``estim.forward.laws.law_of`` maps each to its
+# class), and the <custom><text> name under which it does.
+LAWS = ("factor", "friction")
+LAW_TEXT = "estim:law"
 
 
 class Ball(NamedTuple):
-    """A ball as the scene describes it: name, radius (m), mass (kg), release point (m)."""
+    """A ball as the scene describes it: name, radius (m), mass (kg), release point (m), and
+    moment of inertia as the ratio ``I / (m r^2)`` (MuJoCo's inertia of the ball's body: 2/5
+    for a solid sphere, 2/3 for ``shellinertia="true"``)."""
 
     name: str
     radius: float
     mass: float
     position: tuple[float, float, float]
+    inertia: float = 0.4
 
 
 # The 26 piece directions of a grown box (module docstring), faces first: the order breaks
@@ -123,10 +138,11 @@ class Scene(eqx.Module):
             then only gravity acts and :func:`estim.simulate` is exact, in closed form.
         geometry: static: ``"exact"`` (a box is a box: faces, edges and corners) or
             ``"seed"`` (a box is its six faces; module docstring).
-        law: static: the contact law of every contact (an
-            ``estim.forward.laws.AbstractContactLaw``), or ``None`` for the seed's factor
-            law (``estim.forward.laws.FactorLaw``: e and mu_t). ``None`` stands for it
-            because the laws are defined after the scene, in ``estim.forward``.
+        law: static: the contact law of every contact: an
+            ``estim.forward.laws.AbstractContactLaw``, a name of :data:`LAWS` (as the
+            MJCF file declares it: the laws are defined after the scene, in
+            ``estim.forward``), or ``None`` for the seed's factor law
+            (``estim.forward.laws.FactorLaw``: e and mu_t).
     """
 
     box_centre: Float[Array, "boxes 3"]
@@ -377,9 +393,13 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
                                  f"origin of its body {body_name!r}; centre it on the body "
                                  "(move the offset to the body's pos)")
             pos = tuple(float(v) for v in data.xpos[body])
-            balls.append(
-                Ball(body_name, float(model.geom_size[g, 0]), float(model.body_mass[body]), pos)
-            )
+            radius, mass = float(model.geom_size[g, 0]), float(model.body_mass[body])
+            inertia = float(np.mean(model.body_inertia[body])) / (mass * radius**2)
+            if not 0.0 < inertia <= 1.0:
+                raise ValueError(f"{source}: ball {body_name!r} has the moment of inertia "
+                                 f"{inertia:.4g} m r^2, outside (0, 1] m r^2 (a sphere has 2/5, a "
+                                 "shell 2/3): check its <inertial> or use shellinertia")
+            balls.append(Ball(body_name, radius, mass, pos, inertia))
             continue
         if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0:
             continue  # visual only, exactly as in MuJoCo
@@ -413,21 +433,23 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
             )
     if not boxes and not planes:
         raise ValueError(f"{source}: the scene has no contact surfaces (box or plane geoms)")
+    law = _declared(model, source, LAW_TEXT, LAWS, "contact law")
     return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls), air=air,
-                             geometry=_declared_geometry(model, source))
+                             geometry=_declared(model, source, GEOMETRY_TEXT, GEOMETRIES, "contact geometry"),
+                             ).with_law(None if law == LAWS[0] else law)
 
 
-def _declared_geometry(model, source: str) -> str:
-    """The geometry an MJCF file declares in ``<custom><text name="estim:geometry"
-    data="..."/></custom>``, ``"exact"`` if it declares none."""
+def _declared(model, source: str, text: str, choices: tuple[str, ...], what: str) -> str:
+    """The choice an MJCF file declares in ``<custom><text name=TEXT data="..."/></custom>``,
+    the first of ``choices`` if it declares none."""
     import mujoco
 
-    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, GEOMETRY_TEXT)
+    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, text)
     if i < 0:
-        return GEOMETRIES[0]
+        return choices[0]
     start, size = int(model.text_adr[i]), int(model.text_size[i])
     value = bytes(model.text_data[start:start + size]).split(b"\0", 1)[0].decode().strip()
-    if value not in GEOMETRIES:
-        raise ValueError(f"{source}: <text name={GEOMETRY_TEXT!r} data={value!r}> declares an unknown "
-                         f"contact geometry; expected one of {GEOMETRIES}")
+    if value not in choices:
+        raise ValueError(f"{source}: <text name={text!r} data={value!r}> declares an unknown "
+                         f"{what}; expected one of {choices}")
     return value

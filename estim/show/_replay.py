@@ -259,6 +259,7 @@ def _fitted_positions(scene: Scene, spec, values, t_end, ts) -> np.ndarray:
     """
     # The mass only matters in air; leaving it out otherwise keeps the pytree (and so the
     # compiled program) that of a plain single-ball simulation.
+    registry.check_law(scene)
     air = getattr(scene, "air", None) is not None
     if not air:
         spinning = [n for n in registry.NAMES if registry.component(n).zero_without_air and values[n] != 0]

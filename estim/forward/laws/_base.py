@@ -28,12 +28,11 @@ method takes that pytree ``c``: the dense solution keeps it per ball
 (``Trajectory.solution.coefficients``). A law's own fields are static settings (a law is
 a static field of the scene, so it must be hashable: numbers and tuples, not arrays).
 
-Spin, next. A law that couples spin and velocity (a ball with topspin bouncing forward)
-is a new file too: ``reset`` sees the ball's spin through ``c`` (``coefficients`` may read
-``params.spin`` and ``params.radius``) and returns the post-impact velocity. A law that
-also changes the spin needs the spin carried in the ball's state from contact to contact:
-that is the planner's change of the spin issue (the state gains a spin, ``reset``
-returns the pair), made once for every law.
+Spin. A law that couples spin and velocity (``couples_spin``, e.g.
+:class:`estim.forward.laws.FrictionLaw`) implements ``impact``, the pair (velocity, spin)
+after an impact, and ``settle_spin``; every other law leaves the spin as it is (the
+defaults below). The spin is carried from contact to contact on the ODE path
+(``estim.forward._ode``), which ``estim.simulate`` takes for a law that couples spin.
 """
 
 from __future__ import annotations
@@ -81,9 +80,32 @@ class AbstractContactLaw(eqx.Module):
         its tangential velocity at the last impact: the limit of infinitely many vanishing
         bounces (``contact_velocity``)."""
 
+    @property
+    def couples_spin(self) -> bool:
+        """Whether an impact changes the spin or depends on it (``impact``)."""
+        return False
+
+    def impact(self, v: Float[Array, "3"], w: Float[Array, "3"], n: Float[Array, "3"],
+               c: PyTree) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+        """Velocity and spin (angular velocity) after an impact at velocity v and spin w on
+        a face of unit outward normal n: ``reset``, the spin unchanged, unless the law
+        couples spin."""
+        return self.reset(v, n, c), w
+
+    def settle_spin(self, tangential: Float[Array, "3"], w: Float[Array, "3"], n: Float[Array, "3"],
+                    c: PyTree) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+        """``settle`` with the spin: velocity and spin of a ball whose bounces on a face of
+        normal n have died out (the spin unchanged, unless the law couples spin)."""
+        return self.settle(tangential, c), w
+
     def contact_velocity(self, v: Float[Array, "3"], n: Float[Array, "3"], a: Float[Array, "3"],
                          c: PyTree) -> Float[Array, "3"]:
-        """Velocity after touching a face of normal n under acceleration a.
+        """``contact_state``'s velocity, of a ball without spin."""
+        return self.contact_state(v, jnp.zeros_like(v), n, a, c)[0]
+
+    def contact_state(self, v: Float[Array, "3"], w: Float[Array, "3"], n: Float[Array, "3"],
+                      a: Float[Array, "3"], c: PyTree) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+        """Velocity and spin after touching a face of normal n under acceleration a.
 
         Touching with a normal speed below ``REST_SPEED`` is not an impact: the normal
         component is dropped and nothing else changes. An impact whose ``rebound`` is below
@@ -95,9 +117,11 @@ class AbstractContactLaw(eqx.Module):
         vn = inner(v, n)
         tangential = v - vn * n
         impact = -vn > REST_SPEED
-        bounced = self.reset(v, n, c)
+        bounced = self.impact(v, w, n, c)
         settles = (self.rebound(v, n, c) <= REST_SPEED) & (inner(n, a) < 0)
-        return jnp.where(impact, jnp.where(settles, self.settle(tangential, c), bounced), tangential)
+        settled = self.settle_spin(tangential, w, n, c)
+        return tuple(jnp.where(impact, jnp.where(settles, s, b), o)
+                     for s, b, o in zip(settled, bounced, (tangential, w), strict=True))
 
     @property
     def summable(self) -> bool:
