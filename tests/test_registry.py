@@ -41,7 +41,7 @@ def _closed_form(name):
     if name in ("e", "mu_t"):  # sigmoid into (0, 1)
         return (lambda p: math.log(p / (1.0 - p)), lambda t: 1.0 / (1.0 + math.exp(-t)),
                 lambda p: p * (1.0 - p))
-    if name in ("drag_coefficient", "pixel_scale"):  # exp into (0, inf)
+    if name in ("drag_coefficient", "lift_factor", "pixel_scale"):  # exp into (0, inf)
         return math.log, math.exp, lambda p: p
     return (lambda p: p), (lambda t: t), (lambda p: 1.0)
 
@@ -49,7 +49,7 @@ def _closed_form(name):
 def _samples(name):
     if name in ("e", "mu_t"):
         return [1e-4, 0.05, 0.3, 0.5, 0.82, 0.999]
-    if name in ("drag_coefficient", "pixel_scale"):
+    if name in ("drag_coefficient", "lift_factor", "pixel_scale"):
         return [1e-3, 0.2, 0.47, 1.0, 3.5]
     return [-7.5, -0.2, 0.0, 0.3, 1.15, 40.0]
 

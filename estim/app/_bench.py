@@ -3,6 +3,7 @@ work-precision study on the seed scene, measured in this process."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -390,9 +391,8 @@ def shot_params(scene) -> Params:
 
 def _with_theta(params, ball, theta):
     """``params`` with ball ``ball``'s (e, mu_t, vx0) set to ``theta``."""
-    return Params(params.e.at[ball].set(theta[0]), params.mu_t.at[ball].set(theta[1]), params.radius,
-                  params.position, params.velocity.at[ball, 0].set(theta[2]), mass=params.mass,
-                  drag_coefficient=params.drag_coefficient, spin=params.spin)
+    return dataclasses.replace(params, e=params.e.at[ball].set(theta[0]), mu_t=params.mu_t.at[ball].set(theta[1]),
+                               velocity=params.velocity.at[ball, 0].set(theta[2]))
 
 
 def _alternating_us(fns: dict, repeats: int) -> dict:

@@ -57,7 +57,7 @@ def event_loop(scene, params, t_end, *, max_contacts: int = 16, rtol: float = 1e
         def field(t, y, args):
             v = y[3:]
             return jnp.concatenate([v, acceleration(scene.air, g, prm.radius, prm.mass, prm.drag_coefficient,
-                                                    prm.spin, v)])
+                                                    prm.spin, v, prm.lift_factor)])
 
         def guard(t, y, args, **kwargs):
             return y[2] - _top(scene, y[0], y[1], prm.radius)

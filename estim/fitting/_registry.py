@@ -19,7 +19,7 @@ every component, in registry order; they are what ``estim.fit(free=..., fixed=..
 
       identity:  phi = theta                                  (a position, a speed, t0, spin)
       sigmoid:   phi = 1 / (1 + exp(-theta)),  in (0, 1)      (e, mu_t)
-      exp:       phi = exp(theta),             in (0, inf)    (the drag coefficient)
+      exp:       phi = exp(theta),             in (0, inf)    (the drag coefficient, the lift factor)
 
   Constraints hold by reparametrisation, never by clipping; the inverse clips only a start
   that lies on the edge of the range (``logit`` of 0 or 1 is infinite).
@@ -251,6 +251,8 @@ REGISTRY: tuple[Parameter, ...] = (
               doc="release time on the data's clock (the model's t = 0)"),
     Parameter("drag_coefficient", field="drag_coefficient", transform=Exp(), default=DRAG_COEFFICIENT,
               needs_air=True, doc="drag coefficient C_D of the quadratic drag"),
+    Parameter("lift_factor", field="lift_factor", transform=Exp(), default=1.0, needs_air=True,
+              doc="factor on the Magnus lift coefficient (1: the textbook curve of Sawicki et al.)"),
     Parameter("spin", field="spin", components=("spin_x", "spin_y", "spin_z"), unit="rad/s",
               default=(0.0, 0.0, 0.0), needs_air=True, zero_without_air=True,
               doc="angular velocity (constant) for the Magnus force"),

@@ -38,7 +38,7 @@ def flat_params(params: Params) -> Params:
         flatten(params.e, ()), flatten(params.mu_t, ()), flatten(params.radius, ()),
         flatten(params.position, (3,)), flatten(params.velocity, (3,)), mass=mass,
         drag_coefficient=flatten(params.drag_coefficient, ()), spin=flatten(params.spin, (3,)),
-        mu=flatten(params.mu, ()), inertia=flatten(params.inertia, ()),
+        mu=flatten(params.mu, ()), inertia=flatten(params.inertia, ()), lift_factor=flatten(params.lift_factor, ()),
     )
 
 

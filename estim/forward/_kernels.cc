@@ -1254,8 +1254,8 @@ ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers, f
 }
 
 // The inputs of one ball against the checks of estim.forward._simulate._INPUT_CHECKS: 0 if all
-// pass, else 1 + the index of the first that fails. (The last of them, FRICTION_CHECKS, are of
-// parameters that only the friction law reads, which the kernels do not run: not checked here.)
+// pass, else 1 + the index of the first that fails. (The last of them, UNREAD_BY_KERNELS_CHECKS,
+// are of parameters the kernels never read: the friction law's and the air's.)
 int input_code(const Faces& fc, const Ball& b, bool has_mass, double mass, double drag, V3 spin, double t_end,
                const double* ts, int64_t T) {
   const bool bad[] = {

@@ -200,7 +200,7 @@ def _vector_field(air, gravity, params):
     def f(y, args):
         n_sup, sliding, n_wall, (rolling, anchor, mask) = args
         v, w = y[3:6], y[6:]
-        a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, w, v)
+        a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, w, v, params.lift_factor)
         a = jnp.where(sliding, a - inner(a, n_sup) * n_sup, a)
         push = inner(a, n_wall)  # (written out: a dot would be a library call, estim.forward._contact.inner)
         a = jnp.where(push < 0, a - push * n_wall, a)
@@ -474,7 +474,8 @@ def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duratio
     reach = train_reach(faces, f, p, u, w * w / (2.0 * gravity))
     clear = jnp.linalg.norm(along[:2]) <= reach
     g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
-    a_air = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v) - g_vec
+    a_air = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v,
+                         params.lift_factor) - g_vec
     return (duration <= _zeno_time(a_air, slack)) & lands & clear
 
 
@@ -556,7 +557,8 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         # box, grown by that bound, meets no solid cannot touch one (``sweep_clear``); then
         # no contact is searched for. A sliding ball keeps the slack bound (its face's
         # edges are its events).
-        a_max, lip = step_bounds(air, g, params.radius, params.mass, params.drag_coefficient, w, v, h_try)
+        a_max, lip = step_bounds(air, g, params.radius, params.mass, params.drag_coefficient, w, v, h_try,
+                                 params.lift_factor)
         margin = lip * a_max * h_try**3 / 6.0 + settings.slack
         clear = ~sliding & ~rolling & sweep_clear(faces, p, v, a0, h_try, margin)
         # A step that cannot be cleared whole may be in part: its longest clear part (the

@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._config import CLOSED_FORM_COMPILE, ODE_COMPILE, jit, keep_loop, require_x64, top_level
-from ..model._params import FRICTION_CHECKS, PARAM_CHECKS, Params, check_t_end
+from ..model._params import PARAM_CHECKS, UNREAD_BY_KERNELS_CHECKS, Params, check_t_end
 from ..model._scene import Scene
 from . import _native, _ode
 from ._balls import ball_parts, check_outside, flat_params, inside, map_balls
@@ -304,7 +304,7 @@ _INPUT_CHECKS = tuple(message for message, _ in PARAM_CHECKS) + (
     "t_end must be a finite time > 0 (seconds)",
     "ts must be finite and lie in [0, t_end]",
     "a ball starts inside a solid: release it outside every solid",
-) + tuple(message for message, _ in FRICTION_CHECKS)
+) + tuple(message for message, _ in UNREAD_BY_KERNELS_CHECKS)
 
 
 def _input_code(scene: Scene, prm: Params, t_end, ts):
@@ -315,5 +315,5 @@ def _input_code(scene: Scene, prm: Params, t_end, ts):
         ~(jnp.isfinite(t_end) & (t_end > 0)),
         ~jnp.all(jnp.isfinite(ts) & (ts >= 0) & (ts <= t_end)),
         jnp.any(inside_box) | jnp.any(inside_plane),
-    ] + [~jnp.all(ok(prm)) for _, ok in FRICTION_CHECKS])
+    ] + [~jnp.all(ok(prm)) for _, ok in UNREAD_BY_KERNELS_CHECKS])
     return jnp.where(jnp.any(bad), jnp.argmax(bad) + 1, 0).astype(jnp.int32)

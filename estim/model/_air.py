@@ -9,7 +9,7 @@ angular velocity omega (``Params.spin``) is
 
     a_quad   = -(rho C_D A / (2 m)) |w| w,                 A = pi r^2,              (1)
     a_lin    = -(6 pi eta r / m) w,                                                   (2)
-    a_magnus = (rho A r / (2 m)) kappa(S) (omega x w),     S = r |omega| / |w|,       (3)
+    a_magnus = f_L (rho A r / (2 m)) kappa(S) (omega x w), S = r |omega| / |w|,       (3)
     kappa(S) = C_L(S) / S = min(1.5, 0.6 + 0.09 / S).
 
 (1) is Newton's quadratic drag with the drag coefficient ``Params.drag_coefficient``
@@ -19,8 +19,10 @@ eta, dominant only at Reynolds numbers below ~1 (never for a ball in air; it is 
 MuJoCo's ``viscosity`` option asks for it). (3) is the Magnus lift
 ``F = (1/2) rho A C_L |w|^2`` along ``omega x w / |omega x w|`` with the lift coefficient of
 Sawicki, Hubbard & Stronge (Am. J. Phys. 71, 1152 (2003)): C_L = 1.5 S for S < 0.1 and
-0.09 + 0.6 S above, continuous at S = 0.1. Written with kappa = C_L / S the force is smooth
-in omega and w, and zero without spin. Spin is constant in flight: the torque of the air on
+0.09 + 0.6 S above, continuous at S = 0.1, scaled by the lift factor ``f_L``
+(``Params.lift_factor``, 1 by default: real balls differ from the textbook curve, by their
+seams, fuzz or surface, and a fit can estimate f_L as it estimates C_D). Written with
+kappa = C_L / S the force is smooth in omega and w, and zero without spin. Spin is constant in flight: the torque of the air on
 the ball changes it over seconds (no decay is modelled). At impacts the scene's contact law
 may change it (the friction law does: ``estim.forward.laws.FrictionLaw``; the ODE path carries
 the spin from contact to contact).
@@ -76,7 +78,7 @@ def lift_ratio(radius, omega2, speed):
     return jnp.where(spinning, jnp.minimum(KAPPA_MAX, LIFT_SLOPE + LIFT_OFFSET * speed / (radius * omega)), KAPPA_MAX)
 
 
-def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity):
+def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity, lift_factor=1.0):
     """``a_quad + a_lin + a_magnus`` of eqs. (1)-(3) (m/s^2), for one ball."""
     w = velocity - air.wind
     speed = jnp.sqrt(jnp.sum(w * w) + 1e-300)  # smooth at w = 0, where every term vanishes
@@ -84,19 +86,19 @@ def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity):
     quad = -(air.density * drag_coefficient * area / (2.0 * mass)) * speed * w
     lin = -(6.0 * jnp.pi * air.viscosity * radius / mass) * w
     kappa = lift_ratio(radius, jnp.sum(spin * spin), speed)
-    magnus = (air.density * area * radius / (2.0 * mass)) * kappa * jnp.cross(spin, w)
+    magnus = (lift_factor * air.density * area * radius / (2.0 * mass)) * kappa * jnp.cross(spin, w)
     return quad + lin + magnus
 
 
-def acceleration(air: Air | None, gravity, radius, mass, drag_coefficient, spin, velocity):
+def acceleration(air: Air | None, gravity, radius, mass, drag_coefficient, spin, velocity, lift_factor=1.0):
     """Total acceleration of a ball in flight: gravity (along -z) plus the air's forces."""
     g = jnp.array([0.0, 0.0, -1.0]) * gravity
     if air is None:
         return g + 0.0 * velocity
-    return g + air_acceleration(air, radius, mass, drag_coefficient, spin, velocity)
+    return g + air_acceleration(air, radius, mass, drag_coefficient, spin, velocity, lift_factor)
 
 
-def step_bounds(air: Air | None, gravity, radius, mass, drag_coefficient, spin, velocity, h):
+def step_bounds(air: Air | None, gravity, radius, mass, drag_coefficient, spin, velocity, h, lift_factor=1.0):
     """Bounds over a flight of duration ``h`` from ``velocity``: ``(A, L)`` with
     ``|a(t)| <= A`` all along it and ``L`` a Lipschitz constant of the air's acceleration
     over every velocity it can reach. Then the path stays within
@@ -112,7 +114,7 @@ def step_bounds(air: Air | None, gravity, radius, mass, drag_coefficient, spin, 
     ``|w(t)| <= W = |w(0)| + g h``. Over ``|w| <= W``:
 
     - ``|a| <= g + k W^2 + c W + M |omega| W`` with k, c, M the factors of (1), (2),
-      (3) and kappa <= 1.5;
+      (3) (M with f_L) and kappa <= 1.5;
     - the Jacobian of ``-k |w| w`` is ``-k (|w| I + w w^T / |w|)``, of norm ``2 k |w|``;
       that of (2) has norm c; that of (3) is
       ``M (kappa [omega]_x + kappa'(S) (omega x w) w^T / |w| ...)``, which the two branches
@@ -129,7 +131,7 @@ def step_bounds(air: Air | None, gravity, radius, mass, drag_coefficient, spin, 
     k = air.density * drag_coefficient * area / (2.0 * mass)
     c = 6.0 * jnp.pi * air.viscosity * radius / mass
     omega = jnp.sqrt(jnp.sum(spin * spin))
-    m = air.density * area * radius / (2.0 * mass)
+    m = lift_factor * air.density * area * radius / (2.0 * mass)
     a_max = g + k * big_w**2 + c * big_w + KAPPA_MAX * m * omega * big_w
     lipschitz = 2.0 * k * big_w + c + m * (KAPPA_MAX * omega + LIFT_OFFSET * big_w / radius)
     return a_max, lipschitz

@@ -54,6 +54,8 @@ class Params(eqx.Module):
         spin: angular velocity (rad/s), shape ``(*batch, 3)``, at release: for the Magnus
             force, and for a contact law that couples spin (``estim.forward.laws.FrictionLaw``);
             zero by default, and it must stay zero in a scene where it has no effect.
+        lift_factor: factor f_L >= 0 on the Magnus lift coefficient (``estim.model._air``),
+            1 (the textbook curve) by default; used only in a scene with air.
         mu: Coulomb friction coefficient mu >= 0 of a contact law with friction
             (``estim.forward.laws.FrictionLaw``); 0 (frictionless) by default.
         inertia: the ball's moment of inertia as a ratio ``I / (m r^2)``, in (0, 1]: 2/5
@@ -74,9 +76,11 @@ class Params(eqx.Module):
     spin: Float[Array, "*batch 3"]
     mu: Float[Array, "*batch"]
     inertia: Float[Array, "*batch"]
+    lift_factor: Float[Array, "*batch"]
 
     def __init__(self, e, mu_t, radius, position, velocity, *, mass=None,
-                 drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0), mu=0.0, inertia=SOLID_INERTIA):
+                 drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0), mu=0.0, inertia=SOLID_INERTIA,
+                 lift_factor=1.0):
         self.e = _float64("e", e)
         self.mu_t = _float64("mu_t", mu_t)
         self.radius = _float64("radius", radius)
@@ -87,6 +91,7 @@ class Params(eqx.Module):
         self.spin = _float64("spin", spin)
         self.mu = _float64("mu", mu)
         self.inertia = _float64("inertia", inertia)
+        self.lift_factor = _float64("lift_factor", lift_factor)
 
     def __check_init__(self):
         for name in ("position", "velocity", "spin"):
@@ -96,7 +101,7 @@ class Params(eqx.Module):
         fields = {"e": self.e.shape, "mu_t": self.mu_t.shape, "radius": self.radius.shape,
                   "position": self.position.shape[:-1], "velocity": self.velocity.shape[:-1],
                   "drag_coefficient": self.drag_coefficient.shape, "spin": self.spin.shape[:-1],
-                  "mu": self.mu.shape, "inertia": self.inertia.shape}
+                  "mu": self.mu.shape, "inertia": self.inertia.shape, "lift_factor": self.lift_factor.shape}
         if self.mass is not None:
             fields["mass"] = self.mass.shape
         try:
@@ -115,6 +120,7 @@ class Params(eqx.Module):
             ("spin", self.spin, lambda x: np.isfinite(x), "must be finite"),
             ("mu", self.mu, lambda x: x >= 0, "must be >= 0"),
             ("inertia", self.inertia, lambda x: (x > 0) & (x <= 1), "must lie in (0, 1] (I / (m r^2))"),
+            ("lift_factor", self.lift_factor, lambda x: x >= 0, "must be >= 0"),
         )
         if self.mass is not None:
             checks += (("mass", self.mass, lambda x: x > 0, "must be > 0 (kg)"),)
@@ -132,6 +138,7 @@ class Params(eqx.Module):
             self.position.shape[:-1], self.velocity.shape[:-1],
             () if self.mass is None else self.mass.shape,
             self.drag_coefficient.shape, self.spin.shape[:-1], self.mu.shape, self.inertia.shape,
+            self.lift_factor.shape,
         )
 
     @classmethod
@@ -147,6 +154,7 @@ class Params(eqx.Module):
         drag_coefficient=None,
         spin=(0.0, 0.0, 0.0),
         mu=0.0,
+        lift_factor=1.0,
     ) -> Params:
         """Parameters of the scene's ball ``ball`` (radius, mass and inertia from the
         scene); the release position defaults to the ball's position in the scene file."""
@@ -156,7 +164,8 @@ class Params(eqx.Module):
         if drag_coefficient is None:
             drag_coefficient = DRAG_COEFFICIENT
         return cls(e, mu_t, spec.radius, position, velocity, mass=spec.mass,
-                   drag_coefficient=drag_coefficient, spin=spin, mu=mu, inertia=spec.inertia)
+                   drag_coefficient=drag_coefficient, spin=spin, mu=mu, inertia=spec.inertia,
+                   lift_factor=lift_factor)
 
 
 # The checks of ``Params.__check_init__`` as they run inside ``jit``: a message and what
@@ -171,11 +180,12 @@ PARAM_CHECKS = (
     ("drag_coefficient must be >= 0", lambda p: p.drag_coefficient >= 0),
     ("spin must be finite", lambda p: jnp.isfinite(p.spin)),
 )
-# Those of the parameters only a contact law with friction reads (the native kernels, which
-# run the factor law alone, do not check them; estim.forward._simulate lists them last).
-FRICTION_CHECKS = (
+# Those of the parameters that the native kernels never read (they run the factor law in a
+# vacuum alone), so do not check; estim.forward._simulate lists them last.
+UNREAD_BY_KERNELS_CHECKS = (
     ("mu must be >= 0", lambda p: p.mu >= 0),
     ("inertia must lie in (0, 1]", lambda p: (p.inertia > 0) & (p.inertia <= 1)),
+    ("lift_factor must be >= 0", lambda p: p.lift_factor >= 0),
 )
 
 
