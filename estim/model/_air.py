@@ -34,6 +34,15 @@ with the box's face area s^2 = 2.4 r^2 and coefficient 1, i.e. C_D = 2.4 / pi ~ 
 (applied component-wise, ``|w_i| w_i`` instead of ``|w| w``), and its viscous drag uses the
 mean side as diameter, 3 pi eta s = 0.77 (6 pi eta r) in (2). estim uses the sphere laws above
 with a per-ball C_D instead, because a fitted C_D is what users compare with the literature.
+The inertia model has no Magnus force. MuJoCo's ellipsoid model (``fluidshape="ellipsoid"``
+on the ball's geom) has one, ``f_M = C_M rho V omega x v`` with the volume V = 4 pi r^3 / 3
+and C_M its fifth ``fluidcoef`` (1 by default), beside an added-mass force that for a sphere
+(added mass rho V / 2, Lamb 1932) contributes ``-(rho V / 2) omega x v``. Together,
+``(C_M - 1/2) rho V omega x v`` is (3) with ``f_L kappa = 8 (C_M - 1/2) / 3``: 4/3 for
+MuJoCo's defaults, f_L = 0.89 at low spin ratios (kappa = 1.5), a constant where estim's C_L
+saturates with S. The added mass also adds rho V / 2 to the ball's inertia (0.7% of a
+table-tennis ball's mass), and MuJoCo's angular drag slows the spin, which estim holds
+constant in flight (MuJoCo documentation, "Fluid forces").
 """
 
 from __future__ import annotations
