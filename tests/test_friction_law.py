@@ -222,6 +222,7 @@ def test_fits_and_the_command_line_refuse_the_friction_law_they_cannot_parametri
     with pytest.raises(ValueError, match="FrictionLaw"):
         estim.fit(scene, {"pingpong": (t, track)})
     assert main(["simulate", "--scene", str(TABLE_TENNIS), "--ball", "pingpong", "--e", "0.9"]) == 2
+    assert main(["effects", "--scene", str(TABLE_TENNIS)]) == 2
 
 
 def mujoco_bounce(mu, vx, wy, damping):

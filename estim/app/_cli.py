@@ -485,6 +485,7 @@ def _cmd_effects(args) -> int:
             raise UsageError(f"{name} must be >= 0, got {value}")
     scene_path = args.scene or default_scene_path()
     scene = load_scene(scene_path)
+    registry.check_law(scene)
     if not scene.balls:
         raise UsageError(f"{scene_path}: the scene defines no balls (spheres on free bodies)")
     names = list(dict.fromkeys(args.ball)) if args.ball else [b.name for b in scene.balls]

@@ -392,7 +392,7 @@ def check_law(scene: Scene) -> None:
     if law.couples_spin:
         raise ValueError(
             f"this scene's contact law ({type(law).__name__}) couples the bounce to the spin; "
-            "estim.simulate follows it, but estim's fits, replays and command-line simulations do "
+            "estim.simulate follows it, but estim's fits, replays, effect reports and command-line runs do "
             "not set its friction coefficient mu or the spin through bounces yet: use a scene "
             "that declares no estim:law (the factor law), or estim.simulate with "
             "Params(..., mu=..., spin=...)")
