@@ -59,7 +59,7 @@ class FrictionLaw(AbstractContactLaw):
 
     *Vanishing bounces.* A series of bounces that dies out on a face leaves the ball rolling
     with the tangential angular momentum about the contact point it had (friction stops the
-    slip, whatever mu > 0): ``v = (v_t + alpha r w x n) / (1 + alpha)`` (``settle``; for
+    slip, whatever mu > 0): ``v = (v_t + alpha r w x n) / (1 + alpha)`` (``settle_spin``; for
     mu = 0 nothing changes).
 
     This law changes the spin, so it runs where the spin is carried from contact to contact:
