@@ -43,7 +43,7 @@ import numpy as np
 from .._config import keep_loop
 from ..model._scene import Scene
 from . import _constants
-from ._balls import ball_parts, flat_params, map_balls
+from ._balls import ball_parts, flat_params, map_balls, param_rows
 from ._contact import faces_for
 from ._record import Layout, layout_of, pack
 from ._solver import Decision, Plan, Segment
@@ -167,8 +167,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     # (estim.forward._simulate.map_balls): where both run, as in a derivative, XLA gathers them once.
     flat = flat_params(params)
     n = flat.e.shape[0]
-    layout = layout_of({"params": flat}, 1)
-    rows, _ = pack({"params": flat}, layout, (n,))
+    (rows, *_), (layout, *_), _ = param_rows(flat)  # (the first row: the fields the kernels read)
     param_columns = np.array([leaf.start for leaf in layout.parts[0][2][:5]], dtype=np.int64)  # e, mu_t, radius, position, velocity
     S = max_segments
 
