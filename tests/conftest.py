@@ -11,6 +11,7 @@ Importing estim switches JAX's x64 mode on; every helper computes in float64.
 
 from __future__ import annotations
 
+import gc
 import os
 import pathlib
 import types
@@ -25,11 +26,23 @@ import estim
 # The suite runs the command line in-process (estim.app._cli.main), which would switch JAX's
 # persistent compilation cache on for the whole test process: every later compile of the suite
 # would then be serialised into the user's cache, hundreds of programs the user never asked
-# for; and jaxlib 0.10.2's cache writer crashed the suite twice, a segfault in test_pooled.
+# for (see also _free_compiled_programs below).
 # Subprocesses that measure or want the cache ask for it (estim.app._bench, the notebooks).
 os.environ["ESTIM_NO_CACHE"] = "1"
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """Each test module's compiled programs are freed when it ends (``jax.clear_caches``):
+    kept for the whole session, the suite's hundreds of programs grew the test process past
+    13 GB by two thirds of the suite, and CI's runs crashed there twice in XLA (a segfault
+    in a compile, or in the persistent cache's writer). A module recompiles what it shares
+    with an earlier one."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 STAIRS_XML = ROOT / "data" / "scenes" / "stairs.xml"
 STAIRS_EXACT_XML = ROOT / "data" / "scenes" / "stairs_exact.xml"
 
