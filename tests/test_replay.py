@@ -129,7 +129,7 @@ def test_motion_follows_the_fit_and_the_data(motion, stairs):
         np.testing.assert_allclose(motion.measured[b][:, 1], y)
         # Every parameter of the registry: the fit's where it gives one, else the default.
         defaults = {"y0": y, "vy0": 0.0, "vz0": 0.0, "t0": 0.0, "drag_coefficient": 0.47,
-                    "spin_x": 0.0, "spin_y": 0.0, "spin_z": 0.0, "pixel_scale": 1.0}
+                    "lift_factor": 1.0, "spin_x": 0.0, "spin_y": 0.0, "spin_z": 0.0, "pixel_scale": 1.0}
         assert motion.params[b] == {**v, **defaults}
         assert motion.caption(b) == f"e = {v['e']:.3f}   mu_t = {v['mu_t']:.3f}   vx0 = {v['vx0']:.3f} m/s"
 
@@ -174,7 +174,7 @@ def test_replay_uses_every_fitted_parameter(tmp_path):
     tracks = {"pingpong": (t, np.full((t.size, 3), 0.5))}
     motion = estim.replay_motion(scene, str(fit), tracks, fps=20)
     v = AIR_FIT
-    assert motion.params["pingpong"] == {**v, "pixel_scale": 1.0}  # (a pixel track's: not in this fit)
+    assert motion.params["pingpong"] == {**v, "lift_factor": 1.0, "pixel_scale": 1.0}  # (defaults: not in this fit)
     assert motion.free["pingpong"] == tuple(names)
     caption = motion.caption("pingpong")
     for part in ("vy0 = 0.150 m/s", "drag_coefficient = 0.600", "spin_y = -60.000 rad/s"):
