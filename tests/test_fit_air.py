@@ -14,7 +14,7 @@ def test_drag_coefficient_needs_air():
     scene = estim.load_scene(DROP)
     t = np.linspace(0.0, 0.5, 30)
     pos = np.stack([0.0 * t, np.full_like(t, np.nan), 0.5 - 4.905 * t**2], axis=1)
-    with pytest.raises(ValueError, match="needs a scene with air"):
+    with pytest.raises(ValueError, match="acts only in a scene with air"):
         estim.fit(scene, {"pingpong": (t, pos)}, free=("e", "drag_coefficient"))
 
 

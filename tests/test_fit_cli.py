@@ -90,9 +90,9 @@ def test_fit_also_names_from_the_registry(capsys):
     """--also takes the registry's names (a vector's name for its components): the air's
     parameters in a scene without air are refused before any fit, naming them; a name the
     registry does not have is an argparse error."""
-    err = _fails(["fit", DEMO_CSV, "--scene", SCENE, "--also", "spin"], capsys, "needs a scene with air")
+    err = _fails(["fit", DEMO_CSV, "--scene", SCENE, "--also", "spin"], capsys, "acts only in a scene with air")
     assert "spin_x" in err and "spin_z" in err
-    _fails(["fit", DEMO_CSV, "--scene", SCENE, "--also", "drag_coefficient"], capsys, "needs a scene with air")
+    _fails(["fit", DEMO_CSV, "--scene", SCENE, "--also", "drag_coefficient"], capsys, "acts only in a scene with air")
     with pytest.raises(SystemExit) as info:
         main(["fit", DEMO_CSV, "--scene", SCENE, "--also", "omega"])
     assert info.value.code == 2 and "invalid choice: 'omega'" in capsys.readouterr().err

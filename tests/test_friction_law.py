@@ -6,6 +6,8 @@ ODE path carrying the spin) against a bounce worked out by hand."""
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -211,18 +213,29 @@ def test_simulate_bounces_with_the_spin_it_carries(spin):
         np.testing.assert_allclose(np.asarray(jac[:, i]), fd, rtol=1e-6, atol=1e-9)
 
 
-def test_fits_and_the_command_line_refuse_the_friction_law_they_cannot_parametrise():
-    """The fit's registry has no friction coefficient yet: a fit would hold mu at 0 without
-    saying so, so it is refused, naming the law (as are ``estim simulate`` and the replay)."""
+def test_the_command_line_simulates_the_friction_law_and_refuses_what_does_not_act(capsys):
+    """``estim simulate`` sets the friction law's mu and the spin from the registry, and its
+    result is ``estim.simulate``'s; mu_t, which the friction law does not read, is refused
+    (as mu is in the seed's scene), and ``estim effects``, whose baseline is the factor law's
+    closed form, refuses the scene, naming the law."""
     from estim.app._cli import main
 
+    args = ["--ball", "pingpong", "--e", "0.9", "--mu", "0.2", "--vx0", "0", "--vy0", "6", "--vz0", "1", "--spin-x", "-100",
+            "--t-end", "0.6"]
+    assert main(["simulate", "--scene", str(TABLE_TENNIS), *args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["params"]["mu"] == 0.2 and "mu_t" not in out["params"]
     scene = estim.load_scene(TABLE_TENNIS)
-    t = np.arange(20) / 100.0
-    track = np.c_[0 * t, -1.2 + 5 * t, 0.25 + t - 4.905 * t**2]
-    with pytest.raises(ValueError, match="FrictionLaw"):
-        estim.fit(scene, {"pingpong": (t, track)})
-    assert main(["simulate", "--scene", str(TABLE_TENNIS), "--ball", "pingpong", "--e", "0.9"]) == 2
+    p = estim.Params.for_ball(scene, "pingpong", e=0.9, mu_t=1.0, mu=0.2, velocity=(0.0, 6.0, 1.0),
+                              spin=(-100.0, 0.0, 0.0))
+    traj = estim.simulate(scene, p, 0.6)
+    assert out["events"][0]["t"] == pytest.approx(float(traj.events.t[0]), abs=1e-12)
+    assert main(["simulate", "--scene", str(TABLE_TENNIS), "--ball", "pingpong", "--e", "0.9", "--mu-t", "0.5"]) == 2
+    assert "mu_t acts only under a contact law that reads it" in capsys.readouterr().err
+    assert main(["simulate", "--scene", str(DROP), "--ball", "pingpong",
+                 "--e", "0.9", "--mu", "0.5"]) == 2
     assert main(["effects", "--scene", str(TABLE_TENNIS)]) == 2
+    assert "FrictionLaw" in capsys.readouterr().err
 
 
 def mujoco_bounce(mu, vx, wy, damping):

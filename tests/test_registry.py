@@ -21,6 +21,7 @@ from estim.fitting import _registry as registry
 from estim.fitting._initial import initial_guess, release_start
 
 DROP = ROOT / "data" / "scenes" / "drop.xml"
+TABLE = ROOT / "data" / "scenes" / "table_tennis.xml"
 # The names a fit has always used (fit.json keys, `estim fit --also`, ``fixed=``).
 OLD_NAMES = ("e", "mu_t", "vx0", "x0", "z0", "vz0", "t0", "y0", "vy0", "drag_coefficient", "spin_y")
 G = 9.81
@@ -38,7 +39,7 @@ def test_old_names_are_components():
 
 def _closed_form(name):
     """(phi -> theta, theta -> phi, d phi / d theta at phi) written out for each transform."""
-    if name in ("e", "mu_t"):  # sigmoid into (0, 1)
+    if name in ("e", "mu_t", "mu"):  # sigmoid into (0, 1)
         return (lambda p: math.log(p / (1.0 - p)), lambda t: 1.0 / (1.0 + math.exp(-t)),
                 lambda p: p * (1.0 - p))
     if name in ("drag_coefficient", "lift_factor", "pixel_scale"):  # exp into (0, inf)
@@ -47,7 +48,7 @@ def _closed_form(name):
 
 
 def _samples(name):
-    if name in ("e", "mu_t"):
+    if name in ("e", "mu_t", "mu"):
         return [1e-4, 0.05, 0.3, 0.5, 0.82, 0.999]
     if name in ("drag_coefficient", "lift_factor", "pixel_scale"):
         return [1e-3, 0.2, 0.47, 1.0, 3.5]
@@ -126,14 +127,39 @@ def test_params_fields_from_the_registry():
     np.testing.assert_array_equal(p.spin, [values["spin_x"], values["spin_y"], values["spin_z"]])
     assert float(p.drag_coefficient) == values["drag_coefficient"]
     assert float(p.radius) == 0.02 and float(p.mass) == 0.0027
-    vacuum = registry.to_params(values, radius=0.02, air=False)
+    vacuum = registry.to_params(values, radius=0.02, scene=estim.load_scene(DROP))
     assert vacuum.mass is None and float(vacuum.drag_coefficient) == 0.47
     np.testing.assert_array_equal(vacuum.spin, [0.0, 0.0, 0.0])
+    assert float(vacuum.mu_t) == values["mu_t"] and float(vacuum.mu) == 0.25  # mu: idle there
+    table = registry.to_params(values, radius=0.02, mass=0.0027, inertia=2 / 3, scene=estim.load_scene(TABLE))
+    assert float(table.mu) == values["mu"] and float(table.mu_t) == 0.95 and float(table.inertia) == 2 / 3
+    assert float(table.drag_coefficient) == values["drag_coefficient"]
     # with_values replaces single components and keeps the rest
     q = registry.with_values(p, {"vy0": -2.0, "e": 0.5, "spin_z": 7.0})
     np.testing.assert_array_equal(q.velocity, [values["vx0"], -2.0, values["vz0"]])
     np.testing.assert_array_equal(q.spin, [values["spin_x"], values["spin_y"], 7.0])
     assert float(q.e) == 0.5 and float(q.mu_t) == values["mu_t"]
+
+
+def test_what_acts_follows_the_law_and_the_air():
+    """The law's coefficients act where its ``coefficients`` reads them (traced, not
+    declared); the spin acts in air or under a law that couples it; a fit refuses what does
+    not act, naming where it would; the default fit follows the law."""
+    assert estim.FrictionLaw().reads() == {"e", "mu", "radius", "inertia"}
+    drop, table = estim.load_scene(DROP), estim.load_scene(TABLE)
+    assert {"e", "mu_t"} <= registry.acting(drop) and not {"mu", "spin_x", "drag_coefficient"} & registry.acting(drop)
+    assert {"e", "mu", "spin_x", "spin_z", "drag_coefficient", "lift_factor"} <= registry.acting(table)
+    assert "mu_t" not in registry.acting(table)
+    vacuum_table = table.with_air(None)
+    assert {"mu", "spin_y"} <= registry.acting(vacuum_table) and "drag_coefficient" not in registry.acting(vacuum_table)
+    with pytest.raises(ValueError, match=r"mu_t acts only under a contact law that reads it"):
+        registry.check_acting(table, ("e", "mu_t"))
+    with pytest.raises(ValueError, match=r"spin_y acts only in a scene with air .* or under a contact law"):
+        registry.check_acting(drop, ("spin_y",))
+    assert registry.default_free(drop, lateral=False) == ("e", "mu_t", "vx0", "x0", "z0")
+    assert registry.default_free(drop, lateral=True)[-2:] == ("y0", "vy0")
+    assert registry.default_free(table, lateral=True) == (
+        "e", "mu", "x0", "y0", "z0", "vx0", "vy0", "vz0", "spin_x", "spin_y", "spin_z")
 
 
 def test_starting_values_hold_the_data_or_the_default():
@@ -221,3 +247,49 @@ def test_side_view_start_is_the_x_z_reading():
     assert s.y0 is None and s.vy0 is None and s.direction == (1.0, 0.0, 0.0)
     with pytest.raises(ValueError, match="needs gravity along -z"):
         release_start(t, pos, (0.0, -G, 0.0))
+
+
+# --------------------------------------------------------------------------- starts under the friction law
+
+
+def _shot(scene, spin, mu=0.18, t_end=0.5, noise=0.0):
+    """A table-tennis drive (one bounce on the far half), sampled at 180 Hz."""
+    p = estim.Params.for_ball(scene, "pingpong", e=0.88, mu_t=1.0, mu=mu, position=(0.2, -1.6, 0.2),
+                              velocity=(-0.3, 8.0, 2.0), spin=spin)
+    t = np.arange(0.0, t_end, 1 / 180)
+    pos = np.asarray(estim.simulate(scene, p, t_end, ts=t).position)
+    return t, pos + np.random.default_rng(3).normal(0.0, noise, pos.shape)
+
+
+def test_spin_for_lift_inverts_the_magnus_law():
+    """Eq. (3) of estim.model._air forward (drag included, which the inverse must ignore),
+    then inverted: the spin across the velocity comes back, on both pieces of C_L(S)."""
+    from estim.model._air import Air, air_acceleration, spin_for_lift
+
+    air, v = Air(1.2, 1.8e-5, (0.5, 0.0, 0.0)), np.array([0.3, 8.0, 1.0])
+    w_rel = v - np.asarray(air.wind)
+    for spin in ((0.0, 30.0, -10.0), (-200.0, 5.0, 30.0), (40.0, -300.0, 5.0)):
+        spin = np.asarray(spin) - (np.asarray(spin) @ w_rel) / (w_rel @ w_rel) * w_rel  # across w
+        a = np.asarray(air_acceleration(air, 0.02, 0.0027, 0.4, spin, v, 0.9))
+        np.testing.assert_allclose(spin_for_lift(air, 0.02, 0.0027, v, a, 0.9), spin, rtol=1e-9, atol=1e-9)
+
+
+def test_spin_and_friction_starts_of_a_shot():
+    """On a shot simulated with known spin and mu (2 mm noise): the spin start read off the
+    first flight's curvature is within 10% of the spin across the velocity, and mu's start
+    from the velocity jump at the bounce within 0.03 (the ball slides throughout); with a
+    mu so large that the ball grips, the start is a lower bound."""
+    from estim.fitting._initial import spin_start
+
+    scene = estim.load_scene(TABLE)
+    spec = scene.ball("pingpong")
+    spin = np.array([-120.0, 0.0, 15.0])
+    t, pos = _shot(scene, spin, noise=0.002)
+    init = release_start(t, pos, (0.0, 0.0, -G))
+    assert len(init.bounces) == 1 and init.mu == pytest.approx(0.18, abs=0.03)
+    start = np.asarray(spin_start(init, t, pos, (0.0, 0.0, -G), scene.air, spec.radius, spec.mass))
+    v = np.array([-0.3, 8.0, 2.0])
+    across = spin - (spin @ v) / (v @ v) * v
+    assert np.linalg.norm(start - across) <= 0.1 * np.linalg.norm(across)
+    t, pos = _shot(scene, spin, mu=0.7)
+    assert release_start(t, pos, (0.0, 0.0, -G)).mu < 0.7

@@ -15,12 +15,12 @@ import jax
 from .._config import enable_compilation_cache
 from .._json import dumps
 from ..fitting import _registry as registry
-from ..fitting._fit import DEFAULT_FREE
 from ..fitting._job import PIXEL_FREE, fit_csv, fit_files, fit_pixels
 from ..fitting._simulation_report import SENSITIVITY_NAMES, sensitivities, simulation_report
 from ..forward._balls import check_outside
 from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
 from ..forward._simulate import simulate
+from ..forward.laws import law_of
 from ..model._scene import load_scene
 from ..tracks._csv import MAX_ABS_POSITION, MAX_ABS_TIME
 from ._bench import (
@@ -294,7 +294,7 @@ def _registry_help(entry, name: str) -> str:
         default = f"{entry.default(None)[entry.components.index(name)]:g}"
     except (AttributeError, TypeError):  # a default that the ball gives
         default = "the ball's in the scene"
-    where = "; acts only in a scene with air" if entry.needs_air else ""
+    where = f"; acts only {entry.acts_where}" if entry.acts_where else ""
     unit = f"{entry.unit}; " if entry.unit else ""
     part = f", {'xyz'[entry.components.index(name)]} component" if len(entry.components) == 3 else ""
     return f"{entry.doc}{part} ({unit}default {default}{where})"
@@ -339,9 +339,9 @@ def _simulation_values(args, scene, spec) -> dict[str, float]:
         why = entry.transform.refuse(v)
         if why:
             raise UsageError(f"{_flag(name)} {why}, got {v}")
-        if entry.needs_air and scene is not None and scene.air is None:
-            raise UsageError(f"{_flag(name)}: the {entry.name.replace('_', ' ')} acts only in a scene "
-                             "with air (<option density=...>), and this scene has none")
+        if scene is not None and not entry.acts(scene):
+            raise UsageError(f"{_flag(name)}: {name} acts only {entry.acts_where}, and this scene does "
+                             "not have it")
     if spec is None:
         return {}
     if "e" not in given and "e" not in seed:
@@ -356,7 +356,6 @@ def _cmd_simulate(args) -> int:
 
     scene_path = args.scene or default_scene_path()
     scene = load_scene(scene_path)
-    registry.check_law(scene)
     spec = scene.ball(args.ball)
     values = _simulation_values(args, scene, spec)
     # The limits of the track reader (estim.tracks._csv): beyond them the numbers are not
@@ -371,7 +370,8 @@ def _cmd_simulate(args) -> int:
     air = scene.air is not None
     # The mass only where the air needs it: without it the pytree (and so the compiled
     # program) is that of a plain simulation.
-    params = registry.to_params(values, radius=spec.radius, mass=spec.mass if air else None, air=air)
+    params = registry.to_params(values, radius=spec.radius, mass=spec.mass if air else None, inertia=spec.inertia,
+                                scene=scene)
     check_outside(scene, params, names=[args.ball])
     traj = simulate(scene, params, args.t_end)
 
@@ -485,7 +485,11 @@ def _cmd_effects(args) -> int:
             raise UsageError(f"{name} must be >= 0, got {value}")
     scene_path = args.scene or default_scene_path()
     scene = load_scene(scene_path)
-    registry.check_law(scene)
+    law = law_of(scene)
+    if law.couples_spin:
+        raise UsageError(f"{scene_path}: estim effects compares each effect against the closed-form vacuum "
+                         f"run of the seed's factor law; this scene's {type(law).__name__} couples the "
+                         "bounce to the spin and has no such baseline")
     if not scene.balls:
         raise UsageError(f"{scene_path}: the scene defines no balls (spheres on free bodies)")
     names = list(dict.fromkeys(args.ball)) if args.ball else [b.name for b in scene.balls]
@@ -572,9 +576,13 @@ def _cmd_replay(args) -> int:
 
 def _also(args, base) -> dict:
     """``free=`` for the fit when --also asks for more parameters (registry names; a
-    vector's name stands for its components), else nothing (the fit's default)."""
+    vector's name stands for its components), else nothing (the fit's default). ``base``:
+    the default to add them to, or a scene (its default, ``registry.default_free``; the
+    lateral release state joins it where the tracks have y, as in ``estim.fit``)."""
     if not getattr(args, "also", None):
         return {}
+    if not isinstance(base, tuple):
+        base = registry.default_free(base, lateral=False)
     return {"free": tuple(base) + tuple(n for n in registry.expand(args.also) if n not in base)}
 
 
@@ -623,7 +631,7 @@ def _cmd_fit_clips(args, scene, say) -> int:
         args.tracks, scene, shared=tuple(args.shared), pixels=args.pixels, ball=args.ball,
         frame_interval=args.frame_interval, metres_per_pixel=args.metres_per_pixel,
         from_bounce=args.from_bounce, say=say, loss=args.loss, devices=devices,
-        **_also(args, PIXEL_FREE if args.pixels else DEFAULT_FREE))
+        **_also(args, PIXEL_FREE if args.pixels else scene))
     payload = result.to_json()
     if args.out and jax.process_index() == 0:
         from ..show._outputs import write_pooled_outputs  # lazy: matplotlib
@@ -638,7 +646,7 @@ def _cmd_fit_clips(args, scene, say) -> int:
 
 
 def _cmd_fit(args) -> int:
-    scene = args.scene or default_scene_path()
+    scene = load_scene(args.scene or default_scene_path())
     for path in args.tracks:
         if not os.path.isfile(path):
             raise FileNotFoundError(f"tracks file not found: {path}")
@@ -663,7 +671,7 @@ def _cmd_fit(args) -> int:
         extra = {"metres_per_pixel": scale, "surface_row_px": row,
                  "frame_interval_s": args.frame_interval}
     else:
-        result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss, **_also(args, DEFAULT_FREE))
+        result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss, **_also(args, scene))
     payload = result.to_json()
     payload.update(extra)
     if args.out:

@@ -31,6 +31,7 @@ The pipeline, per ball (all balls of a data set run together, batched with ``vma
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -56,7 +57,7 @@ from ..model._params import Params
 from ..model._scene import Scene
 from ..tracks._csv import check_units
 from . import _registry as registry
-from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start
+from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start, spin_start
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
 from ._missing_physics import format_note, missing_physics
@@ -67,13 +68,8 @@ __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
 # Every parameter a fit can estimate (estim.fitting._registry), in the order of the vector
 # phi of physical values.
 PARAMETERS = registry.NAMES
-# Fitted only in a scene with air (``Scene.air``): the drag coefficient and the spin (rad/s;
-# spin_y, about the y axis, curves a flight in the xz-plane: backspin lifts a ball moving
-# along +x when < 0).
-AIR_PARAMETERS = tuple(n for n in PARAMETERS if registry.component(n).needs_air)
-DEFAULT_FREE = ("e", "mu_t", "vx0", "x0", "z0")
-# Fitted as well by default when the tracks have a y coordinate: the lateral release state.
-LATERAL_FREE = ("y0", "vy0")
+# The default under the seed's factor law (``registry.default_free`` gives every scene's).
+DEFAULT_FREE = registry.FACTOR_FREE
 MIN_SAMPLES = 8  # samples with x and z that a ball needs (as read_tracks_csv by default)
 # Restarts of a batch of more than 2 SUBSET_MIN keys run only the keys that restart (padded
 # to a power of two, at least this many), when they are at most half of the batch.
@@ -88,9 +84,11 @@ class _Problem(eqx.Module):
     mask: jax.Array  # (N, 3) bool
     radius: jax.Array  # ()
     mass: jax.Array  # () (kg), for the air's forces
+    inertia: jax.Array  # () I / (m r^2), for a contact law that couples spin
     fixed: jax.Array  # (len(PARAMETERS),) phi: the values of the parameters not fitted
     scale: jax.Array  # () noise level s of the robust loss (m)
     anchor: jax.Array  # (3,) the point the observations scale about (pixel_scale)
+    size: jax.Array  # () the track's own samples: the first ``size`` of the N
 
 
 # The ODE path's settings in a fit (scenes with air): the defaults of estim.simulate, with a
@@ -101,7 +99,7 @@ FIT_ODE = dict(rtol=_ode.RTOL, atol=_ode.ATOL, contact_slack=_ode.SLACK, max_ste
 def _model(scene: Scene, phi, problem: _Problem):
     """The model's parameters, sample times and end time for physical values phi."""
     values = registry.unpack(phi)
-    params = registry.to_params(values, radius=problem.radius, mass=problem.mass, air=scene.air is not None)
+    params = registry.to_params(values, radius=problem.radius, mass=problem.mass, inertia=problem.inertia, scene=scene)
     ts = jnp.clip(problem.t - values["t0"], 0.0, None)
     return params, ts, jnp.maximum(jnp.max(ts), 1e-3)
 
@@ -215,8 +213,16 @@ class BallFit:
     missing_physics: list[dict] = field(default_factory=list)  # effects the scene leaves out
 
     def to_json(self) -> dict:
+        """The values by their registry names (those that act in the fit's scene), the
+        release state as vectors (``"release"``: t, position, velocity, spin in rad/s, zeros
+        where the scene has no spin), the model's positions at the track's times
+        (``"fitted"``), and the fit's statistics."""
         out = {k: self.values[k] for k in self.values}
+        vector = lambda name: [self.values.get(c, 0.0) for c in registry.component(name).components]  # noqa: E731
         out.update(
+            release={"t": self.values["t0"], "position": vector("x0"), "velocity": vector("vx0"),
+                     "spin": vector("spin_x")},
+            fitted={"t": self.model_t.tolist(), "position": self.model_position.tolist()},
             stderr={k: (None if not math.isfinite(v) else v) for k, v in self.stderr.items()},
             correlation={"names": list(self.names), "matrix": np.round(self.correlation, 6).tolist()},
             rms_m=self.rms_m,
@@ -251,11 +257,13 @@ class FitResult:
         with standard errors, rms, samples, bounces, status."""
 
         def pm(bf, name):
+            if name not in bf.values:  # a parameter that does not act in this ball's scene
+                return "-"
             v, s = bf.values[name], bf.stderr.get(name, math.nan)
             return f"{v:.4f} +- {s:.4f}" if math.isfinite(s) else f"{v:.4f} (n/a)"
 
         fitted = {n for bf in self.balls.values() for n in bf.names}
-        columns = registry.shown(PARAMETERS, fitted)
+        columns = registry.shown({n for bf in self.balls.values() for n in bf.values}, fitted)
         labels = "".join(f" {registry.component(n).label(n):>17}" for n in columns)
         head = f"{'ball':<10}{labels} {'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
         rows = [head, "-" * len(head)]
@@ -276,7 +284,7 @@ def fit(
     scene: Scene,
     data: dict[str, tuple[np.ndarray, np.ndarray]],
     *,
-    free: tuple[str, ...] = DEFAULT_FREE,
+    free: tuple[str, ...] | None = None,
     fixed: dict[str, dict[str, float]] | None = None,
     loss: str = "cauchy",
     steps: int = 30,
@@ -294,8 +302,11 @@ def fit(
             coordinate (``Tracks.arrays()`` gives this).
         free: the parameters to fit (the names of ``PARAMETERS``, from the registry
             ``estim.fitting._registry``; a vector's name stands for its components:
-            ``"spin"`` for spin_x, spin_y, spin_z). By default e, mu_t, vx0, x0, z0, plus y0
-            and vy0 when the tracks have a y coordinate. The rest are held at the data's
+            ``"spin"`` for spin_x, spin_y, spin_z). By default (``None``) what
+            ``registry.default_free`` gives for the scene: under the seed's factor law e,
+            mu_t, vx0, x0, z0, plus y0 and vy0 when the tracks have a y coordinate (as for
+            any ``free`` that holds those five); under a law that couples spin (the friction
+            law) e, mu, the release position, velocity and spin. The rest are held at the data's
             start or at their default (``Parameter.hold_start``): x0, y0, z0, vx0, vy0 as
             read from the data (in the ball's plane of travel:
             ``estim.fitting._initial.release_start``; y0 the ball's y in the scene and
@@ -354,23 +365,18 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     require_x64()
     if loss not in ROBUST_LOSSES:
         raise ValueError(f"unknown loss {loss!r}; choose one of {ROBUST_LOSSES}")
-    bad = [n for n in free if n not in PARAMETERS and n not in (p.name for p in registry.REGISTRY)]
+    bad = [n for n in free or () if n not in PARAMETERS and n not in (p.name for p in registry.REGISTRY)]
     if bad:
         raise ValueError(f"unknown parameter(s) {bad}; a fit can estimate {PARAMETERS}")
-    free = registry.expand(free)
-    air_free = [n for n in free if n in AIR_PARAMETERS]
-    if air_free and scene.air is None:
-        raise ValueError(
-            f"fitting {air_free} needs a scene with air: add <option density=...> to the "
-            "scene (or Scene.with_air(estim.Air(density=1.204)))"
-        )
     ball_of = {b: (balls or {}).get(b, b) for b in data} if isinstance(data, dict) else {}
     _check_inputs(scene, data, fixed or {}, ball_of)
     say = progress or (lambda msg: None)
     names = list(data)
-    if (set(DEFAULT_FREE) <= set(free) and "y0" not in free
-            and any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)):
-        free = tuple(free) + tuple(n for n in LATERAL_FREE if n not in free)  # 3-D tracks: the lateral release state too
+    lateral = any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)
+    free = registry.default_free(scene, lateral) if free is None else registry.expand(free)
+    registry.check_acting(scene, free)
+    if set(registry.FACTOR_FREE) <= set(free) and "y0" not in free and lateral:
+        free = tuple(free) + tuple(n for n in registry.LATERAL if n not in free)  # 3-D tracks: the lateral release state too
     if not names:
         raise ValueError("no balls to fit")
     gravity = _gravity_vector(scene)
@@ -383,7 +389,10 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         spec = scene.ball(ball_of[b])
         t, pos = (np.asarray(a, dtype=np.float64) for a in data[b])
         release = fixed.get(b, {}).get("t0", 0.0)
-        init = release_start(t, pos, gravity, release_time=release)
+        init = release_start(t, pos, gravity, release_time=release, curved=scene.air is not None)
+        if scene.air is not None:
+            init = dataclasses.replace(init, spin=spin_start(init, t, pos, gravity, scene.air, spec.radius, spec.mass,
+                                                             fixed.get(b, {}).get("lift_factor", 1.0)))
         inits.append(init)
         values = registry.starting_values(spec, init, free)
         values.update(fixed.get(b, {}))
@@ -396,9 +405,11 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
             mask=np.concatenate([mask, np.zeros((pad, 3), bool)]),
             radius=np.float64(spec.radius),
             mass=np.float64(spec.mass),
+            inertia=np.float64(spec.inertia),
             fixed=phi,
             scale=np.float64(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3),
             anchor=np.asarray((anchors or {}).get(b, (0.0, 0.0, 0.0)), dtype=np.float64),
+            size=np.int64(len(t)),
         ))
         starts.append(registry.to_theta(phi, free))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
@@ -489,7 +500,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     results = {}
     for i, b in enumerate(names):
-        results[b] = _report(b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
+        results[b] = _report(scene, b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
         explain_misfit(scene, results[b], problems[i])
     units = _Units(names=names, free=tuple(free), problems=problems, inits=inits, starts=starts,
                    theta=np.asarray(best_theta), noises=noises, floors=floors)
@@ -506,7 +517,8 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem) -> None:
     span = float(np.max(np.asarray(problem.t)[valid])) - report.values["t0"]
     if not span > 0:
         return
-    params = registry.to_params(report.values, radius=problem.radius, mass=problem.mass, air=False)
+    params = registry.to_params(report.values, radius=problem.radius, mass=problem.mass,
+                                inertia=problem.inertia, scene=scene)
     report.missing_physics = missing_physics(scene, params, span, report.noise_m, report.ball)
     for m in report.missing_physics:
         if m["explains"]:
@@ -541,7 +553,6 @@ def _check_inputs(scene, data, fixed, ball_of=None) -> None:
     detection (masked); anything else must be finite."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be an estim.Scene (estim.load_scene), got {type(scene).__name__}")
-    registry.check_law(scene)
     if not isinstance(data, dict):
         raise TypeError(f"data must be a dict ball -> (t, position), got {type(data).__name__}")
     if not data:
@@ -601,9 +612,9 @@ def _check_inputs(scene, data, fixed, ball_of=None) -> None:
             why = entry.transform.refuse(v)
             if why:
                 raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r} {why}")
-            if entry.zero_without_air and v != 0 and scene.air is None:
-                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r}: {entry.name} has no effect in a "
-                                 "scene without air")
+            if entry.zero_where_idle and v != 0 and not entry.acts(scene):
+                raise ValueError(f"fixed[{b!r}][{name!r}] = {v!r}: {entry.name} acts only "
+                                 f"{entry.acts_where}, and this scene does not have it")
         if "x0" in values and "z0" in values:
             spec = scene.ball(ball_of[b])
             y0 = float(values.get("y0", spec.position[1]))
@@ -734,10 +745,12 @@ def _run(scene, free, loss, steps, max_segments, theta, batch):
     return state.best_params, history.T, best
 
 
-def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, noise) -> BallFit:
+def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_floor, noise) -> BallFit:
     r, J, (_, pos, impacts) = jax.tree.map(lambda a: np.asarray(a[i]), diag)
     phi = registry.to_physical(np.asarray(theta), free, problem.fixed)
-    values = {n: float(v) for n, v in registry.unpack(phi).items()}
+    # The values of the parameters that act in the scene (under the friction law: mu, not mu_t).
+    acting = registry.acting(scene)
+    values = {n: float(v) for n, v in registry.unpack(phi).items() if n in acting}
     # Jacobian with respect to the physical parameters: d phi / d theta per column.
     dphi = registry.slopes(phi, free)
     at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range
@@ -802,7 +815,7 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
         if delay > LATE_START:
             notes.append(f"the first sample is {delay:.2f} s after the release at t0 = {values['t0']:g} s: "
                          "if the data's clock does not start at the release, shift the times so that it does")
-    t_np = np.asarray(problem.t)
+    n = int(problem.size)
     return BallFit(
         ball=ball,
         values=values,
@@ -819,7 +832,7 @@ def _report(ball, free, loss, theta, diag, i, problem, init, history, at_floor, 
         notes=notes,
         loss_history=history,
         initial=init,
-        model_t=t_np,
-        model_position=np.asarray(pos),
-        residuals=r_all.reshape(-1, 3),
+        model_t=np.asarray(problem.t)[:n],
+        model_position=np.asarray(pos)[:n],
+        residuals=r_all.reshape(-1, 3)[:n],
     )

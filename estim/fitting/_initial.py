@@ -10,7 +10,11 @@ so ``w(t) = z(t) + g t^2 / 2`` is a straight line within a flight and bends upwa
 bounce (the vertical velocity jumps up by (1 + e) |v|). Flights are the maximal runs on which
 w is a line to within the noise. Two consecutive flights meet at the bounce, where the
 parabolas intersect; there ``e = -v_after / v_before`` and ``mu_t = u_after / u_before``
-(u the horizontal speed, a straight-line fit of x(t) per flight). The flights and the
+(u the horizontal speed, a straight-line fit of x(t) per flight), and for the friction law
+(``estim.FrictionLaw``: an impact that slides throughout changes the tangential velocity by
+mu times the normal impulse) ``mu = |u_after - u_before| / (v_after - v_before)``, a lower
+bound where the ball grips. In air, the spin of the first flight comes from its curvature
+(:func:`spin_start`). The flights and the
 noise level come from ``estim.tracks._flights`` (:func:`split_flights`, ``robust_noise``),
 which the track readers' flight analysis shares.
 """
@@ -23,7 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..tracks._flights import Flight, robust_std, split_flights
+from ..model._air import Air, spin_for_lift
+from ..tracks._flights import Flight, robust_noise, robust_std, split_flights
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,8 @@ class Initial:
     y0: float | None = None
     vy0: float | None = None
     direction: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    mu: float = float("nan")  # the friction law's coefficient (FRICTION_DEFAULT without a bounce)
+    spin: tuple[float | None, float | None, float | None] = (None, None, None)  # rad/s (spin_start)
 
     @property
     def position(self) -> tuple[float, float | None, float]:
@@ -63,8 +70,9 @@ class Initial:
 
 # Where a start for e or mu_t is clipped to (a median of one or two noisy bounces can fall
 # outside), and the value taken without a resolved bounce.
-E_RANGE, MU_RANGE = (0.05, 0.99), (0.5, 1.0)
-E_DEFAULT, MU_DEFAULT = 0.7, 0.95
+E_RANGE, MU_RANGE, FRICTION_RANGE = (0.05, 0.99), (0.5, 1.0), (0.02, 0.8)
+# FRICTION_DEFAULT: a table-tennis ball on a table (Nakashima et al. 2010 measure 0.25).
+E_DEFAULT, MU_DEFAULT, FRICTION_DEFAULT = 0.7, 0.95, 0.25
 # Residuals about the flights (x and z) from which their spread is the noise level; with
 # fewer, the larger of that and the second-difference estimate.
 TRUSTED_RESIDUALS = 60
@@ -82,7 +90,7 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
         raise ValueError("no flight could be resolved in this track (too few valid samples?)")
     f0 = flights[0]
     t0 = release_time
-    es, mus, bounces = [], [], []
+    es, mus, frictions, bounces = [], [], [], []
     for a, b in zip(flights[:-1], flights[1:], strict=True):
         # The parabolas meet where their lines of w meet.
         dv = b.w[1] - a.w[1]
@@ -97,6 +105,7 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
             bounces.append(tb)
             if abs(a.x[1]) > 1e-3:
                 mus.append(b.x[1] / a.x[1])
+            frictions.append(abs(b.x[1] - a.x[1]) / (after - before))
     # The noise level: robust spread of the samples about their flight's line of w
     # (second differences, used to split the flights, also see the curvature across
     # missing frames and rests, and overestimate it).
@@ -118,6 +127,7 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
     return Initial(
         e=e,
         mu_t=mu,
+        mu=float(np.clip(np.median(frictions), *FRICTION_RANGE)) if frictions else FRICTION_DEFAULT,
         vx0=float(f0.x[1]),
         vz0=float(f0.vz(t0, g)),
         x0=float(f0.x[0] + f0.x[1] * t0),
@@ -128,7 +138,8 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
     )
 
 
-def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT, mu_default=MU_DEFAULT):
+def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT, mu_default=MU_DEFAULT,
+                  curved=False):
     """Starting values for one track in the ball's plane of travel, in the scene's coordinates.
 
     Gravity ``g`` (a vector, m/s^2) sets the vertical ``up = -g / |g|``; a sample ``p`` has
@@ -143,6 +154,14 @@ def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT
 
         position = s0 u + l0 w + h0 up,    velocity = v_s u + v_l w + v_h up.
 
+    The friction law's mu comes from the velocity jump at each bounce (``_jump_at``), and
+    so does e where the flights are ``curved`` (a scene with air: drag and the Magnus force
+    bend a flight away from its parabola, and the flights' lines of w misread the jump).
+    There the release state comes from the first samples alone (``_release_at``), and the
+    noise level from third differences of each coordinate
+    (``robust_noise``: blind to a flight's curvature, which the spread about the flights'
+    lines of w would count as noise), the root mean square over the coordinates.
+
     A ball thrown along y gets the same starts as one thrown along x (the projection on x
     would read no horizontal speed, and so no mu_t). A track without y (a side view) is
     read in the x-z plane as it is: ``initial_guess(t, x, z, |g|)``, which needs gravity
@@ -153,6 +172,7 @@ def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT
         position: ``(n, 3)`` positions (m), NaN where a coordinate was not measured.
         gravity: the gravity vector (m/s^2), e.g. ``(0, 0, -9.81)``.
         release_time: the model's t = 0 on the data's clock (s).
+        curved: the flights are not parabolas (air): e from the velocities at the bounces.
 
     Raises:
         ValueError: a zero or non-finite gravity; a track without y under a gravity that
@@ -187,10 +207,70 @@ def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT
     t0 = release_time
     release = init.x0 * u + (l0 + vl * t0) * w + init.z0 * up
     speed = init.vx0 * u + vl * w + init.vz0 * up
+    edges = (-np.inf, *init.bounces, np.inf)
+    jumps = [j for k, tb in enumerate(init.bounces) if (j := _jump_at(t, pos, tb, up, edges[k], edges[k + 2])) is not None]
+    e, noise = init.e, init.noise
+    if curved:
+        release, speed = _release_at(t, pos, release_time, edges[1], release, speed)
+        if jumps:
+            e = float(np.clip(np.median([j[0] for j in jumps]), *E_RANGE))
+        levels = [robust_noise(pos[np.isfinite(pos[:, k]), k], order=3) for k in range(3)]
+        levels = [s for s in levels if np.isfinite(s)]
+        noise = float(np.sqrt(np.mean(np.square(levels)))) if levels else noise
     return dataclasses.replace(
         init, x0=float(release[0]), y0=float(release[1]), z0=float(release[2]),
         vx0=float(speed[0]), vy0=float(speed[1]), vz0=float(speed[2]), direction=tuple(float(c) for c in u),
+        e=e, noise=noise, mu=float(np.clip(np.median([j[1] for j in jumps]), *FRICTION_RANGE)) if jumps else init.mu,
     )
+
+
+# Half-width (s) of the windows on either side of a bounce whose samples give the velocities
+# just before and after it, and the samples each window needs.
+BOUNCE_WINDOW, BOUNCE_SAMPLES = 0.1, 6
+
+
+def _release_at(t, pos, t0, bounce, position, velocity):
+    """The release state at ``t0`` from a quadratic in time per coordinate over the samples
+    of the first ``BOUNCE_WINDOW`` seconds (before the first bounce): in air, a straight line
+    through a whole flight reads its mean velocity, which drag has already slowed. A
+    coordinate with too few samples keeps ``position`` and ``velocity``."""
+    position, velocity = np.array(position, dtype=np.float64), np.array(velocity, dtype=np.float64)
+    for k in range(3):
+        ok = np.isfinite(t) & np.isfinite(pos[:, k]) & (t < bounce)
+        near = ok & (t <= t[ok].min() + BOUNCE_WINDOW) if ok.any() else ok
+        if near.sum() < BOUNCE_SAMPLES:
+            continue
+        dt = t[near] - t0
+        c = np.linalg.lstsq(np.stack([np.ones(dt.size), dt, dt**2], axis=1), pos[near, k], rcond=None)[0]
+        position[k], velocity[k] = c[0], c[1]
+    return position, velocity
+
+
+def _jump_at(t, pos, tb, up, before, after) -> tuple[float, float] | None:
+    """e and the friction law's mu at the bounce at ``tb``, from the velocities just before
+    and after it: a quadratic in time per coordinate over the samples within
+    ``BOUNCE_WINDOW`` on each side, and between the neighbouring bounces at ``before`` and
+    ``after`` (in air a flight's line of w, or its straight line in x, would mix the drag's
+    deceleration and the Magnus force into the jump). ``e = -v_n+ / v_n-``; an impact that
+    slides throughout changes the tangential velocity by mu times the change of the normal
+    one, ``mu = |dv_t| / dv_n``; where the ball grips it changes less, so that start is a
+    lower bound, on the side where the loss still depends on mu. ``None`` where a window
+    has too few samples or the normal velocity does not turn."""
+    velocities = []
+    for side in (-1, 1):
+        near = (side * (t - tb) > 0) & (np.abs(t - tb) <= BOUNCE_WINDOW) & (t > before) & (t < after) \
+            & np.all(np.isfinite(pos), axis=1)
+        if near.sum() < BOUNCE_SAMPLES:
+            return None
+        dt = t[near] - tb
+        design = np.stack([np.ones(dt.size), dt, dt**2], axis=1)
+        velocities.append(np.linalg.lstsq(design, pos[near], rcond=None)[0][1])
+    v_in, v_out = float(velocities[0] @ up), float(velocities[1] @ up)
+    if not (v_in < 0 < v_out):
+        return None
+    jump = velocities[1] - velocities[0]
+    normal = v_out - v_in
+    return -v_out / v_in, float(np.linalg.norm(jump - normal * up) / normal)
 
 
 def _direction_of_travel(t, horizontal, up):
@@ -207,3 +287,37 @@ def _direction_of_travel(t, horizontal, up):
     u = u - (u @ up) * up
     u = u / np.linalg.norm(u)
     return -u if np.sum((d @ u) * (t[ok] - t[ok].mean())) < 0 else u
+
+
+# Samples a flight needs for its curvature to give a spin start.
+CURVATURE_SAMPLES = 8
+
+
+def spin_start(init: Initial, t, position, gravity, air: Air, radius: float, mass: float,
+               lift_factor: float = 1.0) -> tuple[float, float, float]:
+    """The release spin (rad/s) read off the curvature of the flight before the first
+    resolved bounce: a quadratic in time per coordinate gives the mean velocity v and
+    acceleration a over it; what gravity leaves, ``a - g``, is drag (along -v) and the
+    Magnus force (across v), and the part across v inverts the lift law
+    (``estim.model._air.spin_for_lift``). The spin along v does nothing in flight and
+    starts at 0; so does the spin of a flight too short to curve measurably
+    (fewer than ``CURVATURE_SAMPLES`` samples). A coordinate the track lacks (y in a side
+    view) counts as not moving."""
+    t = np.asarray(t, dtype=np.float64)
+    pos = np.asarray(position, dtype=np.float64)
+    end = init.bounces[0] if init.bounces else np.inf
+    inside = (t < end) & np.all(np.isfinite(pos[:, [0, 2]]), axis=1)
+    if inside.sum() < CURVATURE_SAMPLES:
+        return (0.0, 0.0, 0.0)
+    tm = float(np.mean(t[inside]))
+    design = np.stack([np.ones(int(inside.sum())), t[inside] - tm, 0.5 * (t[inside] - tm) ** 2], axis=1)
+    velocity, acceleration = np.zeros(3), np.zeros(3)
+    for k in range(3):
+        ok = np.isfinite(pos[inside, k])
+        if ok.sum() >= CURVATURE_SAMPLES:
+            coef = np.linalg.lstsq(design[ok], pos[inside, k][ok], rcond=None)[0]
+            velocity[k], acceleration[k] = coef[1], coef[2]
+    if not np.isfinite(pos[:, 1]).any():
+        acceleration[1] = -np.asarray(gravity, dtype=np.float64)[1]  # no lift read along y
+    spin = spin_for_lift(air, radius, mass, velocity, acceleration - np.asarray(gravity, dtype=np.float64), lift_factor)
+    return tuple(float(w) for w in spin)

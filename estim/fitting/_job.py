@@ -10,7 +10,7 @@ import numpy as np
 from ..model._scene import Scene, load_scene
 from ..tracks._csv import read_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
-from ._fit import DEFAULT_FREE, fit
+from ._fit import fit
 from ._initial import initial_guess, split_flights
 from ._pooled import Clip, fit_clips
 
@@ -214,6 +214,6 @@ def fit_files(paths, scene: Scene | str, *, shared, pixels: bool = False, ball: 
     if alone:
         raise ValueError(f"ball(s) {alone} appear in only one clip: shared parameters need a ball "
                          "in at least two clips")
-    free = options.pop("free", PIXEL_FREE if pixels else DEFAULT_FREE)
+    free = options.pop("free", PIXEL_FREE if pixels else None)
     result = fit_clips(scene, clips, shared=shared, free=free, progress=say, **options)
     return result, {c.label: (c.t, c.position) for c in clips}

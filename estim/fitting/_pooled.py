@@ -71,7 +71,6 @@ from .._config import FIT_COMPILE, jit, require_x64
 from ..model._scene import Scene
 from . import _registry as registry
 from ._fit import (
-    DEFAULT_FREE,
     PARAMETERS,
     FitResult,
     _at_floor,
@@ -323,7 +322,7 @@ def fit_clips(
     clips: Sequence[Clip],
     *,
     shared: Sequence[str] = ("e",),
-    free: tuple[str, ...] = DEFAULT_FREE,
+    free: tuple[str, ...] | None = None,
     loss: str = "cauchy",
     steps: int = 30,
     joint_steps: int = 40,
@@ -340,7 +339,8 @@ def fit_clips(
         clips: the clips (:class:`Clip`), each one ball's track; labels must be unique.
         shared: the parameters shared by all clips of a ball (registry names, fitted), e.g.
             ``("e", "drag_coefficient")``; the rest of ``free`` is fitted per clip.
-        free: every fitted parameter (shared ones are added if missing).
+        free: every fitted parameter (shared ones are added if missing); by default what
+            :func:`estim.fit` fits by default in the scene.
         loss: the robust loss, as :func:`estim.fit`.
         steps: iterations of the one-by-one fits, as :func:`estim.fit`.
         restarts: as :func:`estim.fit` for the one-by-one fits; clips that reached their
@@ -365,7 +365,6 @@ def fit_clips(
             :func:`estim.fit` rejects (named by its label).
     """
     require_x64()
-    registry.check_law(scene)
     say = progress or (lambda msg: None)
     clips = list(clips)
     if len(clips) < 2:
@@ -379,7 +378,8 @@ def fit_clips(
         raise ValueError(f"unknown shared parameter(s) {unknown}; the parameters are {PARAMETERS}")
     if "t0" in shared:
         raise ValueError("t0 is a clip's own time offset and cannot be shared")
-    free = registry.expand(free)
+    lateral = any(np.isfinite(np.asarray(c.position)[:, 1]).any() for c in clips)
+    free = registry.default_free(scene, lateral) if free is None else registry.expand(free)
     free = tuple(free) + tuple(n for n in shared if n not in free)
     fixed_shared = [n for c in clips for n in shared if n in c.fixed]
     if fixed_shared:
@@ -480,7 +480,7 @@ def fit_clips(
     reports = {}
     for i, label in enumerate(labels):
         hist = history[group_of[i]]
-        reports[label] = _report(label, free, loss, theta_best[i], diag, i, units.problems[i], units.inits[i],
+        reports[label] = _report(scene, label, free, loss, theta_best[i], diag, i, units.problems[i], units.inits[i],
                                  hist, floors[i], units.noises[i])
         explain_misfit(scene, reports[label], units.problems[i])
     own = (_own_estimates(scene, units, individual, shared, theta_best, loss, max_segments, say) if per_clip
@@ -518,7 +518,7 @@ def _own_estimates(scene, units, individual, shared, theta, loss, max_segments, 
         best, history, diag = jax.device_get(_run(scene, own_free, loss, OWN_STEPS, max_segments, start, batch))
         out[n] = []
         for i, label in enumerate(units.names):
-            bf = _report(label, own_free, loss, best[i], diag, i, problems[i], units.inits[i], np.asarray(history[i]),
+            bf = _report(scene, label, own_free, loss, best[i], diag, i, problems[i], units.inits[i], np.asarray(history[i]),
                          True, units.noises[i])
             out[n].append((bf.values[n], bf.stderr.get(n, math.nan)))
     return out

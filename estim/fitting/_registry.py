@@ -33,7 +33,7 @@ Adding a fit parameter is one entry of :data:`REGISTRY`. The ball's radius, say 
 With it, ``estim.fit(..., free=(..., "radius"))`` and ``estim fit --also radius`` fit it
 (with a standard error), fit.json holds it, ``estim replay`` replays with it, ``estim
 simulate --radius`` sets it, and the table and captions show it where it was fitted. A
-parameter that acts only in air says ``needs_air=True``; one the data can start from gives
+parameter that acts only in air says ``acts=_in_air``; one the data can start from gives
 ``start=lambda initial: (...)`` (``estim.fitting._initial.Initial``). A quantity that is not
 yet a field of ``Params`` needs that field first (and the forward model to use it).
 """
@@ -53,12 +53,12 @@ import numpy as np
 from ..forward.laws import law_of
 from ..model._params import DRAG_COEFFICIENT, Params
 from ..model._scene import Ball, Scene
-from ._initial import E_DEFAULT, MU_DEFAULT, Initial
+from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
 from ._loss import array_namespace
 
 __all__ = [
-    "AbstractTransform", "Exp", "Identity", "NAMES", "Parameter", "REGISTRY", "Sigmoid",
-    "component", "defaults", "describe", "expand", "index", "pack", "shown", "slopes",
+    "AbstractTransform", "Exp", "Identity", "NAMES", "Parameter", "REGISTRY", "Sigmoid", "acting",
+    "check_acting", "component", "default_free", "defaults", "describe", "expand", "index", "pack", "shown", "slopes",
     "starting_values", "to_params", "to_physical", "to_theta", "unpack", "value", "values_for",
     "with_values",
 ]
@@ -181,8 +181,13 @@ class Parameter(eqx.Module):
             point: it lies in the plots).
         unit: the unit of every component (``""``: none).
         doc: one line for help texts.
-        needs_air: fitting it needs a scene with air (it changes nothing in a vacuum).
-        zero_without_air: :class:`estim.Params` requires it to be zero in a scene without air.
+        acts: ``scene -> bool``, whether it changes the motion in ``scene`` (the drag
+            coefficient only in air, ``mu_t`` only under a contact law that reads it); a fit
+            refuses to estimate it where it does not act, and :func:`to_params` holds it at
+            its default there. An entry that can be idle has a default that needs no ball.
+        acts_where: where it acts, for messages (``"in a scene with air"``; ``""``: always).
+        zero_where_idle: :class:`estim.Params` requires it to be zero where it does not act
+            (the spin).
         needs_bounce: the data determines it only through bounces (a note says so when
             none is resolved).
     """
@@ -197,14 +202,15 @@ class Parameter(eqx.Module):
     show: tuple[str, ...]
     unit: str
     doc: str
-    needs_air: bool
-    zero_without_air: bool
+    acts: Callable[[Scene], bool]
+    acts_where: str
+    zero_where_idle: bool
     needs_bounce: bool
 
     def __init__(self, name: str, *, field: str | None, default, components: Iterable[str] | None = None,
                  transform: AbstractTransform | None = None, start=None, hold_start=True,
-                 show="fitted", unit: str = "", doc: str = "", needs_air: bool = False,
-                 zero_without_air: bool = False, needs_bounce: bool = False):
+                 show="fitted", unit: str = "", doc: str = "", acts=None, acts_where: str = "",
+                 zero_where_idle: bool = False, needs_bounce: bool = False):
         self.name = name
         self.field = field
         self.components = (name,) if components is None else tuple(components)
@@ -220,8 +226,9 @@ class Parameter(eqx.Module):
         self.show = _per_component(show, n, "show")
         self.unit = unit
         self.doc = doc
-        self.needs_air = needs_air
-        self.zero_without_air = zero_without_air
+        self.acts = _always if acts is None else acts
+        self.acts_where = acts_where
+        self.zero_where_idle = zero_where_idle
         self.needs_bounce = needs_bounce
 
     def __check_init__(self):
@@ -234,13 +241,39 @@ class Parameter(eqx.Module):
         return f"{component} ({self.unit})" if self.unit else component
 
 
+def _always(scene: Scene) -> bool:
+    return True
+
+
+def _in_air(scene: Scene) -> bool:
+    return scene.air is not None
+
+
+def _spinning(scene: Scene) -> bool:
+    """The spin acts through the Magnus force in air, and at impacts under a law that
+    couples it to the velocity."""
+    return scene.air is not None or law_of(scene).couples_spin
+
+
+def _read_by_law(field: str) -> Callable[[Scene], bool]:
+    """Acts where the scene's contact law reads the :class:`estim.Params` field ``field``
+    (``AbstractContactLaw.reads``)."""
+    return lambda scene: field in law_of(scene).reads()
+
+
+IN_AIR = "in a scene with air (<option density=...>)"
+UNDER_LAW = "under a contact law that reads it (the scene's estim:law)"
+
 REGISTRY: tuple[Parameter, ...] = (
     Parameter("e", field="e", transform=Sigmoid(), default=E_DEFAULT, start=lambda s: (s.e,),
-              show="always", needs_bounce=True,
+              show="always", needs_bounce=True, acts=_read_by_law("e"), acts_where=UNDER_LAW,
               doc="coefficient of restitution: an impact turns the normal velocity into -e times itself"),
     Parameter("mu_t", field="mu_t", transform=Sigmoid(), default=MU_DEFAULT, start=lambda s: (s.mu_t,),
-              show="always", needs_bounce=True,
-              doc="tangential coefficient: an impact scales the tangential velocity by mu_t"),
+              show="always", needs_bounce=True, acts=_read_by_law("mu_t"), acts_where=UNDER_LAW,
+              doc="tangential coefficient of the factor law: an impact scales the tangential velocity by mu_t"),
+    Parameter("mu", field="mu", transform=Sigmoid(), default=FRICTION_DEFAULT, start=lambda s: (s.mu,),
+              show="always", needs_bounce=True, acts=_read_by_law("mu"), acts_where=UNDER_LAW,
+              doc="Coulomb friction coefficient of the friction law (estim.FrictionLaw), in (0, 1)"),
     Parameter("position", field="position", components=("x0", "y0", "z0"), unit="m",
               default=lambda ball: tuple(ball.position), start=lambda s: s.position, show="never",
               doc="release position of the ball's centre"),
@@ -250,12 +283,14 @@ REGISTRY: tuple[Parameter, ...] = (
     Parameter("t0", field=None, unit="s", default=0.0,
               doc="release time on the data's clock (the model's t = 0)"),
     Parameter("drag_coefficient", field="drag_coefficient", transform=Exp(), default=DRAG_COEFFICIENT,
-              needs_air=True, doc="drag coefficient C_D of the quadratic drag"),
-    Parameter("lift_factor", field="lift_factor", transform=Exp(), default=1.0, needs_air=True,
+              acts=_in_air, acts_where=IN_AIR, doc="drag coefficient C_D of the quadratic drag"),
+    Parameter("lift_factor", field="lift_factor", transform=Exp(), default=1.0, acts=_in_air, acts_where=IN_AIR,
               doc="factor on the Magnus lift coefficient (1: the textbook curve of Sawicki et al.)"),
     Parameter("spin", field="spin", components=("spin_x", "spin_y", "spin_z"), unit="rad/s",
-              default=(0.0, 0.0, 0.0), needs_air=True, zero_without_air=True,
-              doc="angular velocity (constant) for the Magnus force"),
+              default=(0.0, 0.0, 0.0), start=lambda s: s.spin, hold_start=False, acts=_spinning,
+              acts_where=f"{IN_AIR} or under a contact law that couples spin (estim:law friction)",
+              zero_where_idle=True, doc="angular velocity at release: the Magnus force in flight, the "
+                                        "friction law's bounces"),
     Parameter("pixel_scale", field=None, transform=Exp(), default=1.0,
               doc="factor on a pixel track's metres per pixel about its surface (1: the scale "
                   "read off the data; fitted per clip where that scale is biased, as by drag)"),
@@ -382,34 +417,64 @@ def _stack(values):
     return jnp.stack(values) if len(values) > 1 else values[0]
 
 
-def check_law(scene: Scene) -> None:
-    """Refuse a scene whose contact law the registry cannot parametrise: its entries are the
-    parameters of the seed's factor law (e, mu_t) and of the air. A law that couples spin
-    (the friction law: its friction coefficient mu, the ball's inertia, the spin carried
-    through bounces) is simulated by ``estim.simulate`` but not yet fitted, replayed or
-    set from the command line; a fit would hold mu at 0 without saying so."""
-    law = law_of(scene)
-    if law.couples_spin:
-        raise ValueError(
-            f"this scene's contact law ({type(law).__name__}) couples the bounce to the spin; "
-            "estim.simulate follows it, but estim's fits, replays, effect reports and command-line runs do "
-            "not set its friction coefficient mu or the spin through bounces yet: use a scene "
-            "that declares no estim:law (the factor law), or estim.simulate with "
-            "Params(..., mu=..., spin=...)")
+def acting(scene: Scene) -> frozenset[str]:
+    """The components that change the motion in ``scene`` (``Parameter.acts``)."""
+    return frozenset(c for p in REGISTRY if p.acts(scene) for c in p.components)
 
 
-def to_params(values: Mapping[str, Any], *, radius, mass=None, air: bool = True) -> Params:
+def check_acting(scene: Scene, names: Iterable[str], what: str = "fitting") -> None:
+    """Refuse components that do nothing in ``scene``: an estimate of them would be noise,
+    a value given for them silently ignored.
+
+    Raises:
+        ValueError: naming each and where it acts.
+    """
+    idle = [n for n in names if not component(n).acts(scene)]
+    if idle:
+        where = "; ".join(f"{n} acts only {component(n).acts_where}" for n in idle)
+        raise ValueError(f"{what} {idle}: {where}, and this scene's ({type(law_of(scene)).__name__}"
+                         f"{', with air' if scene.air is not None else ', no air'}) does not have it")
+
+
+# Fitted by default for the seed's factor law: the release speed along x, the release point
+# in the x-z plane, e and mu_t (the release from the hand: vz0 = 0); for a track with y the
+# lateral release state too (``LATERAL``).
+FACTOR_FREE = ("e", "mu_t", "vx0", "x0", "z0")
+LATERAL = ("y0", "vy0")
+
+
+def default_free(scene: Scene, lateral: bool) -> tuple[str, ...]:
+    """What a fit estimates by default in ``scene``: the law's coefficients that act there
+    (``e``, and ``mu_t`` or ``mu``) and the release state.
+
+    Under the seed's factor law: ``FACTOR_FREE``, and ``LATERAL`` for a track with y
+    (``lateral``). Under a law that couples spin (a ball thrown or hit, as in table
+    tennis): the law's coefficients, the release position and velocity (3-vectors) and
+    the spin, which the bounce (and in air the Magnus force) reads."""
+    if not law_of(scene).couples_spin:
+        return FACTOR_FREE + (LATERAL if lateral else ())
+    coefficients = tuple(p.name for p in REGISTRY if p.needs_bounce and p.acts(scene))
+    return coefficients + expand(("position", "velocity", "spin"))
+
+
+def to_params(values: Mapping[str, Any], *, radius, mass=None, inertia=None, scene: Scene | None = None) -> Params:
     """The :class:`estim.Params` of ``values`` (``name -> value`` for every component whose
-    entry has a field; NumPy, JAX or Python numbers) for a ball of ``radius`` (and ``mass``,
-    which only a scene with air needs: ``None`` keeps the pytree of a plain simulation).
+    entry has a field; NumPy, JAX or Python numbers) for a ball of ``radius``, ``mass``
+    (which only a scene with air needs: ``None`` keeps the pytree of a plain simulation)
+    and ``inertia`` (I / (m r^2); ``None``: a solid sphere's).
 
-    With ``air=False`` (a scene without air) the entries that act only in air
-    (``needs_air``) keep the defaults of :class:`estim.Params`, as constants: they change
-    nothing there, and a traced value would only add work to the compiled program."""
+    With ``scene``, the entries that do not act there (:func:`acting`: the drag
+    coefficient in a vacuum, ``mu_t`` under the friction law) are held at their defaults,
+    as constants: they change nothing there, and a traced value would only add work to the
+    compiled program."""
     fields: dict[str, Any] = {"radius": radius, "mass": mass}
+    if inertia is not None:
+        fields["inertia"] = inertia
     for p in REGISTRY:
-        if p.field is not None and (air or not p.needs_air):
-            fields[p.field] = _stack([values[c] for c in p.components])
+        if p.field is None:
+            continue
+        idle = scene is not None and not p.acts(scene)
+        fields[p.field] = _stack(list(p.default(None)) if idle else [values[c] for c in p.components])
     return Params(**fields)
 
 

@@ -49,10 +49,9 @@ def simulation_report(scene: Scene, traj: Trajectory, values: Mapping[str, float
             "kind": "impact" if int(kind[i]) == IMPACT else "settle",
         })
     fp, fv = np.asarray(traj.final.position), np.asarray(traj.final.velocity)
-    air = scene.air is not None
     return {
         "params": {
-            **{n: values[n] for p in registry.REGISTRY if p.field is not None and (air or not p.needs_air)
+            **{n: values[n] for p in registry.REGISTRY if p.field is not None and p.acts(scene)
                for n in p.components},
             "t_end": float(t_end),
         },

@@ -47,11 +47,14 @@ constant in flight (MuJoCo documentation, "Fluid forces").
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-__all__ = ["Air", "acceleration", "step_bounds"]
+__all__ = ["Air", "acceleration", "spin_for_lift", "step_bounds"]
 
 
 class Air(eqx.Module):
@@ -85,6 +88,32 @@ def lift_ratio(radius, omega2, speed):
     spinning = omega2 > 0
     omega = jnp.sqrt(jnp.where(spinning, omega2, 1.0))
     return jnp.where(spinning, jnp.minimum(KAPPA_MAX, LIFT_SLOPE + LIFT_OFFSET * speed / (radius * omega)), KAPPA_MAX)
+
+
+def spin_for_lift(air: Air, radius: float, mass: float, velocity, lift, lift_factor: float = 1.0):
+    """The spin (rad/s, NumPy) perpendicular to the relative velocity ``w`` whose Magnus
+    acceleration (eq. (3)) is the part of ``lift`` (m/s^2) perpendicular to w: eq. (3)
+    inverted, for a start read off a flight's curvature.
+
+    With c = f_L rho A r / (2 m) and |omega| = S |w| / r, eq. (3) reads
+    |a_M| = c kappa(S) |omega| |w| = c C_L(S) |w|^2 / r, so C_L = |a_M| r / (c |w|^2), and
+    C_L(S) inverts piecewise: S = C_L / 1.5 below C_L = 0.15, S = (C_L - 0.09) / 0.6 above.
+    The direction: for omega perpendicular to w, w x (omega x w) = |w|^2 omega, so omega
+    points along w x a_M. The spin along w moves nothing in flight and is left at 0.
+    """
+    w = np.asarray(velocity, dtype=np.float64) - np.asarray(air.wind)
+    speed2 = float(w @ w)
+    c = lift_factor * float(air.density) * math.pi * radius**3 / (2.0 * mass)
+    if not (speed2 > 0 and c > 0):
+        return np.zeros(3)
+    a = np.asarray(lift, dtype=np.float64)
+    a_perp = a - (a @ w) * w / speed2
+    lift_coefficient = float(np.linalg.norm(a_perp)) * radius / (c * speed2)
+    knee = KAPPA_MAX * LIFT_OFFSET / (KAPPA_MAX - LIFT_SLOPE)  # C_L where the two pieces meet (0.15)
+    s = lift_coefficient / KAPPA_MAX if lift_coefficient < knee else (lift_coefficient - LIFT_OFFSET) / LIFT_SLOPE
+    axis = np.cross(w, a_perp)
+    norm = float(np.linalg.norm(axis))
+    return np.zeros(3) if norm == 0 else (s * math.sqrt(speed2) / radius) * axis / norm
 
 
 def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity, lift_factor=1.0):

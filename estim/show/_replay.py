@@ -42,7 +42,6 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..fitting import _registry as registry  # noqa: E402
-from ..fitting._fit import DEFAULT_FREE  # noqa: E402
 from ..forward._simulate import simulate  # noqa: E402
 from ..model._scene import Scene, load_scene, scene_from_model  # noqa: E402
 from ..tracks._csv import Tracks, read_tracks_csv  # noqa: E402
@@ -71,6 +70,8 @@ TRAIL_SCALE, TRAIL_ALPHA = 0.3, 0.6
 # GIF stores frame durations in hundredths of a second, and viewers slow frames shorter
 # than 20 ms down to 100 ms: 50 frames per second is the most a GIF can show.
 GIF_MAX_FPS = 50.0
+# What every fit.json gives a ball, whatever its scene's law: e and the release state.
+REQUIRED = ("e", "vx0", "x0", "z0")
 
 
 class RenderError(RuntimeError):
@@ -146,7 +147,7 @@ def _read_fit(fit) -> dict[str, tuple[dict, tuple[str, ...]]]:
     """``ball -> (values, fitted names)`` from a fit.json path, its parsed object, or a
     FitResult. The values are the registry's parameters that the fit gives (fit.json
     holds them under their names, beside its statistics); every fit gives at least
-    ``DEFAULT_FREE`` (e, mu_t, vx0, x0, z0), the replay takes the others' defaults."""
+    ``REQUIRED`` (e, vx0, x0, z0), the replay takes the others' defaults."""
     if hasattr(fit, "balls") and not isinstance(fit, Mapping):  # a FitResult
         return {b: ({k: v for k, v in bf.values.items() if k in registry.NAMES}, tuple(bf.names))
                 for b, bf in fit.balls.items()}
@@ -168,7 +169,7 @@ def _read_fit(fit) -> dict[str, tuple[dict, tuple[str, ...]]]:
     for ball, values in fit["balls"].items():
         if not isinstance(values, Mapping):
             raise ValueError(f"{where}: ball {ball!r} is not an object of parameter values")
-        missing = [k for k in DEFAULT_FREE if not _is_number(values.get(k))]
+        missing = [k for k in REQUIRED if not _is_number(values.get(k))]
         if missing:
             raise ValueError(f"{where}: ball {ball!r} has no numeric {missing}")
         bad = [k for k in registry.NAMES if k in values and not _is_number(values[k])]
@@ -259,14 +260,15 @@ def _fitted_positions(scene: Scene, spec, values, t_end, ts) -> np.ndarray:
     """
     # The mass only matters in air; leaving it out otherwise keeps the pytree (and so the
     # compiled program) that of a plain single-ball simulation.
-    registry.check_law(scene)
     air = getattr(scene, "air", None) is not None
-    if not air:
-        spinning = [n for n in registry.NAMES if registry.component(n).zero_without_air and values[n] != 0]
-        if spinning:
-            raise ValueError(f"ball {spec.name!r}: the fit gives {', '.join(f'{n} = {values[n]:g}' for n in spinning)}, "
-                             "which acts only in a scene with air: replay it in the scene it was fitted in")
-    p = registry.to_params(values, radius=spec.radius, mass=spec.mass if air else None, air=air)
+    idle = [n for n in registry.NAMES if registry.component(n).zero_where_idle and values[n] != 0
+            and not registry.component(n).acts(scene)]
+    if idle:
+        raise ValueError(f"ball {spec.name!r}: the fit gives {', '.join(f'{n} = {values[n]:g}' for n in idle)}, "
+                         f"which acts only {registry.component(idle[0]).acts_where}: replay it in the scene "
+                         "it was fitted in")
+    p = registry.to_params(values, radius=spec.radius, mass=spec.mass if air else None, inertia=spec.inertia,
+                           scene=scene)
     traj = simulate(scene, p, t_end)
     n = ts.shape[0]
     padded = np.concatenate([ts, np.full(-n % 64, ts[-1])])

@@ -41,6 +41,7 @@ import abc
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
@@ -79,6 +80,20 @@ class AbstractContactLaw(eqx.Module):
         """Velocity of a ball whose bounces on a face that supports it have died out, from
         its tangential velocity at the last impact: the limit of infinitely many vanishing
         bounces (``contact_velocity``)."""
+
+    def reads(self) -> frozenset[str]:
+        """The :class:`estim.Params` fields ``coefficients`` reads (``{"e", "mu_t"}`` for
+        the factor law): read off the traced program of ``coefficients``, so it cannot
+        disagree with it. A fit estimates only the law's coefficients a scene's law reads
+        (``estim.fitting._registry.acts``)."""
+        probe = Params(0.5, 0.5, 1.0, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), mass=1.0)
+        leaves, structure = jax.tree_util.tree_flatten_with_path(probe)
+        closed = jax.make_jaxpr(lambda *x: self.coefficients(jax.tree.unflatten(structure, x)))(
+            *(leaf for _, leaf in leaves))
+        used = {id(v) for eqn in closed.jaxpr.eqns for v in eqn.invars}
+        used |= {id(v) for v in closed.jaxpr.outvars}
+        return frozenset(path[0].name for (path, _), var in zip(leaves, closed.jaxpr.invars, strict=True)
+                         if id(var) in used)
 
     @property
     def couples_spin(self) -> bool:

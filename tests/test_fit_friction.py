@@ -1,0 +1,99 @@
+"""Fits of 3-D table-tennis shots under the friction law (issue 23, fitting half): the
+known parameters of synthetic shots come back (e, mu, the spin across the flight), and
+``estim fit --scene data/scenes/table_tennis.xml`` fits a shot with its defaults and writes
+the release state and the fitted positions into its JSON.
+
+Each shot is ``estim.simulate`` on the bundled table-tennis scene (drag, Magnus, the
+friction law at the bounce), 180 Hz, 2 mm Gaussian noise per coordinate. The batch of four
+shots compiles one fit program; the command line (one shot) another.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import estim
+from estim.app._cli import main
+
+TABLE = ROOT / "data" / "scenes" / "table_tennis.xml"
+HZ, NOISE, T_END = 180.0, 0.002, 0.65
+# name: (e, mu, release position, velocity, spin): drives with topspin and sidespin, a
+# push with backspin, a flat hit; each bounces once on the far half of the table and
+# slides through its bounce (where a ball grips, mu only bounds the friction, and the data
+# cannot tell it).
+SHOTS = {
+    "topspin": (0.90, 0.12, (0.2, -1.6, 0.2), (-0.3, 8.0, 2.0), (-150.0, 10.0, 20.0)),
+    "backspin": (0.86, 0.25, (-0.3, -1.5, 0.25), (0.3, 5.0, 1.2), (120.0, -15.0, 0.0)),
+    "sidespin": (0.88, 0.15, (0.5, -1.7, 0.3), (-0.8, 7.0, 1.5), (-40.0, 30.0, 90.0)),
+    "flat": (0.92, 0.30, (0.0, -1.4, 0.15), (0.2, 6.5, 1.8), (-20.0, 0.0, 0.0)),
+}
+
+
+def shot(scene, name, rng):
+    e, mu, position, velocity, spin = SHOTS[name]
+    p = estim.Params.for_ball(scene, "pingpong", e=e, mu_t=1.0, mu=mu, position=position, velocity=velocity,
+                              spin=spin)
+    t = np.arange(0.0, T_END, 1 / HZ)
+    traj = estim.simulate(scene, p, T_END, ts=t)
+    impacts = np.asarray(traj.events.t)[np.asarray(traj.events.kind) == 0]
+    assert impacts.size and impacts[0] < T_END - 0.1, name  # one bounce, with a flight after it
+    return t, np.asarray(traj.position) + rng.normal(0.0, NOISE, (t.size, 3))
+
+
+def across(spin, velocity):
+    """The spin across the velocity: the part a flight's Magnus curve shows."""
+    v = np.asarray(velocity, dtype=np.float64)
+    return np.asarray(spin) - (np.asarray(spin) @ v) / (v @ v) * v
+
+
+@pytest.mark.slow
+def test_fit_recovers_the_shots_with_spin():
+    """e within 0.01, mu within 0.03, the spin across the release velocity within 10% and
+    the rms within 10% of the noise, fitted with the scene's defaults (e, mu, release
+    position, velocity and spin) from starts read off the data."""
+    scene = estim.load_scene(TABLE)
+    rng = np.random.default_rng(7)
+    data = {name: shot(scene, name, rng) for name in SHOTS}
+    result = estim.fit(scene, data, balls={name: "pingpong" for name in SHOTS})
+    for name, (e, mu, _, velocity, spin) in SHOTS.items():
+        bf = result.balls[name]
+        assert bf.names == ("e", "mu", "x0", "y0", "z0", "vx0", "vy0", "vz0", "spin_x", "spin_y", "spin_z")
+        assert "mu_t" not in bf.values and bf.n_bounces == 1, name
+        assert bf.values["e"] == pytest.approx(e, abs=0.01), name
+        assert bf.values["mu"] == pytest.approx(mu, abs=0.03), name
+        fitted = np.array([bf.values[c] for c in ("spin_x", "spin_y", "spin_z")])
+        truth = across(spin, velocity)
+        assert np.linalg.norm(across(fitted, velocity) - truth) <= 0.1 * np.linalg.norm(truth), (name, fitted)
+        assert bf.rms_m == pytest.approx(NOISE, rel=0.1), name
+
+
+def test_command_line_fits_a_shot_on_the_table_tennis_scene(tmp_path, capsys):
+    """``estim fit TRACK.csv --scene data/scenes/table_tennis.xml --json``: a `t,ball,x,y,z`
+    track of one shot, the scene's defaults; the JSON gives e and mu (no mu_t: the
+    friction law does not read it), the release state as vectors (t, position, velocity,
+    spin) that match the values, and the model's positions at the track's times, which
+    lie within a few noise levels of the noise-free shot."""
+    scene = estim.load_scene(TABLE)
+    t, pos = shot(scene, "topspin", np.random.default_rng(11))
+    csv = tmp_path / "shot.csv"
+    csv.write_text("t,ball,x,y,z\n" + "".join(f"{a:.6f},pingpong,{x:.5f},{y:.5f},{z:.5f}\n"
+                                              for a, (x, y, z) in zip(t, pos, strict=True)))
+    code = main(["fit", str(csv), "--scene", str(TABLE), "--json"])
+    ball = json.loads(capsys.readouterr().out)["balls"]["pingpong"]
+    assert code == 0 and ball["converged"] and ball["at_noise_floor"]
+    assert "mu" in ball and "mu_t" not in ball and ball["e"] == pytest.approx(0.90, abs=0.01)
+    release = ball["release"]
+    assert release["t"] == ball["t0"] == 0.0
+    assert release["position"] == [ball["x0"], ball["y0"], ball["z0"]]
+    assert release["velocity"] == [ball["vx0"], ball["vy0"], ball["vz0"]]
+    assert release["spin"] == [ball["spin_x"], ball["spin_y"], ball["spin_z"]]
+    np.testing.assert_allclose(ball["fitted"]["t"], t, atol=1e-6)
+    e, mu, position, velocity, spin = SHOTS["topspin"]
+    exact = estim.simulate(scene, estim.Params.for_ball(scene, "pingpong", e=e, mu_t=1.0, mu=mu, position=position,
+                                                        velocity=velocity, spin=spin), T_END, ts=t)
+    gap = np.linalg.norm(np.asarray(ball["fitted"]["position"]) - np.asarray(exact.position), axis=1)
+    assert np.max(gap) < 2 * NOISE
