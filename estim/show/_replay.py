@@ -101,8 +101,8 @@ class ReplayMotion:
         samples: ``ball -> (t (n,), position (n, 3))`` every measured sample (y filled as in
             ``measured``), for trails.
         params: ``ball -> {name: value}`` the values the model was replayed with: every
-            parameter of the registry (``estim.fitting._registry``; the fit's, else the
-            default). Captions show e, mu_t, vx0 and the parameters the fit estimated besides
+            parameter of the registry that acts in the scene (``estim.fitting._registry``;
+            the fit's, else the default). Captions show e, mu_t, vx0 and the parameters the fit estimated besides
             (``free``) that the registry shows where fitted (vy0, the drag coefficient, the
             spin, ...); a ``params`` holding only some of them shows those.
         radius: ``ball -> radius`` (m) from the scene.
@@ -228,6 +228,7 @@ def replay_motion(scene: Scene | str | os.PathLike, fit, tracks, *, fps: float =
     ts = frame_times(float(np.min(t_all)), float(np.max(t_all)), fps)
 
     fitted, measured, samples, params, radius, free = {}, {}, {}, {}, {}, {}
+    acting = registry.acting(scene)
     for b, (t, pos) in data.items():
         spec = scene.ball(b)
         v = registry.values_for(spec, values[b][0])
@@ -243,7 +244,7 @@ def replay_motion(scene: Scene | str | os.PathLike, fit, tracks, *, fps: float =
         ok = np.all(np.isfinite(pos), axis=1)
         samples[b] = (t[ok], pos[ok])
         measured[b] = _nearest_samples(t, pos, ts)
-        params[b] = v
+        params[b] = {k: x for k, x in v.items() if k in acting}
         free[b] = values[b][1]
         radius[b] = float(spec.radius)
     return ReplayMotion(tuple(data), ts, float(fps), fitted, measured, samples, params, radius, free)
