@@ -64,8 +64,8 @@ __version__ = "0.1.0"
 # Plotting and rendering load matplotlib, Pillow and an OpenGL context: imported on first
 # use, so that `import estim` stays quick and never picks a matplotlib backend.
 _LAZY = {
-    "plot_fit": ".show._plots", "plot_residuals": ".show._plots", "plot_loss_history": ".show._plots",
-    "plot_heights": ".show._plots", "plot_energy": ".show._plots",
+    "plot_fit": ".show._plots", "plot_from_above": ".show._plots", "plot_residuals": ".show._plots",
+    "plot_loss_history": ".show._plots", "plot_heights": ".show._plots", "plot_energy": ".show._plots",
     "ReplayMotion": ".show._replay", "ReplayInfo": ".show._replay", "SideCamera": ".show._replay",
     "RenderError": ".show._replay", "EncoderNotFoundError": ".show._replay",
     "frame_times": ".show._replay", "replay_motion": ".show._replay", "side_camera": ".show._replay",

@@ -173,6 +173,14 @@ def test_fit_plots_of_3d_tracks_show_y():
     fig = estim.plot_residuals(data, result)
     for ax in fig.axes:
         assert {"x", "y", "z"} <= set(lines_by_label(ax))
+    # and from above: y against x, measured and model per ball
+    (ax,) = estim.plot_from_above(data, result).axes
+    lines = lines_by_label(ax)
+    assert ax.get_xlabel() == "x [m]" and ax.get_ylabel() == "y [m]"
+    for b in ("golf", "pingpong"):
+        np.testing.assert_array_equal(lines[f"{b} fit"].get_ydata(), result.balls[b].model_position[:, 1])
+        np.testing.assert_array_equal(lines[f"{b} fit"].get_xdata(), result.balls[b].model_position[:, 0])
+    np.testing.assert_allclose(lines["golf measured"].get_ydata(), 0.1 + data["golf"][0], atol=0.01)
 
 
 def test_demo_writes_heights_and_energy(tmp_path):

@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
+
 from .._json import dump
 from ..fitting._fit import FitResult
 from ..fitting._pooled import PooledResult
 from ._forest import plot_forest
-from ._plots import plot_fit, plot_loss_history, plot_residuals
+from ._plots import plot_fit, plot_from_above, plot_loss_history, plot_residuals
 
 
 def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = None) -> dict:
-    """fit.json and the plots (fit.png, residuals.png, loss.png) into ``out_dir``."""
+    """fit.json and the plots (fit.png, residuals.png, loss.png, and above.png, the view
+    from above, for tracks with y) into ``out_dir``."""
     os.makedirs(out_dir, exist_ok=True)
     payload = result.to_json()
     payload.update(extra or {})
@@ -21,6 +24,8 @@ def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = N
     plot_fit(data, result, os.path.join(out_dir, "fit.png"))
     plot_residuals(data, result, os.path.join(out_dir, "residuals.png"))
     plot_loss_history(result, os.path.join(out_dir, "loss.png"))
+    if any(np.isfinite(np.asarray(data[b][1], dtype=np.float64)[:, 1]).any() for b in result.balls):
+        plot_from_above(data, result, os.path.join(out_dir, "above.png"))
     return payload
 
 

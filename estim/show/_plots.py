@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from ..fitting._fit import FitResult
 from ..forward._trajectory import IMPACT, REST
 
-__all__ = ["COLOURS", "plot_energy", "plot_fit", "plot_heights", "plot_loss_history",
+__all__ = ["COLOURS", "plot_energy", "plot_fit", "plot_from_above", "plot_heights", "plot_loss_history",
            "plot_residuals"]
 
 # One colour per ball, shared by the plots, the side view and the MuJoCo replay. The golf
@@ -67,6 +67,28 @@ def plot_fit(data: dict, result: FitResult, path=None) -> Figure:
     axes[0].set_title("Tracked positions and the fitted hybrid model")
     axes[0].legend(fontsize=7, ncol=2)
     axes[-1].set_xlabel("t [s]")
+    return _save(fig, path)
+
+
+def plot_from_above(data: dict, result: FitResult, path=None) -> Figure:
+    """The tracks seen from above (y against x, equal scales): measured positions (markers)
+    and the fitted model (lines), for tracks with y: a shot's direction of play and its
+    curve sideways (sidespin, wind) that the panels over time show only one at a time."""
+    fig = Figure(figsize=(6.4, 6.4), layout="tight")
+    ax = fig.subplots()
+    for i, (ball, bf) in enumerate(result.balls.items()):
+        t, pos = data[ball]
+        c = _colour(ball, i)
+        ok = np.all(np.isfinite(pos[:, :2]), axis=1)
+        ax.plot(pos[ok, 0], pos[ok, 1], "o", ms=2.5, color=c, alpha=0.55, label=f"{ball} measured")
+        ax.plot(bf.model_position[: len(t), 0], bf.model_position[: len(t), 1], "-", lw=1.3, color=c,
+                label=f"{ball} fit")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("Seen from above")
+    ax.grid(alpha=0.25)
+    ax.legend(fontsize=7)
     return _save(fig, path)
 
 
