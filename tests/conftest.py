@@ -11,10 +11,14 @@ Importing estim switches JAX's x64 mode on; every helper computes in float64.
 
 from __future__ import annotations
 
+import functools
 import gc
 import os
 import pathlib
+import shutil
+import tempfile
 import types
+import uuid
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +26,7 @@ import numpy as np
 import pytest
 
 import estim
+from estim._config import CLOSED_FORM_COMPILE, compile_options
 
 # The suite runs the command line in-process (estim.app._cli.main), which would switch JAX's
 # persistent compilation cache on for the whole test process: every later compile of the suite
@@ -31,6 +36,23 @@ import estim
 os.environ["ESTIM_NO_CACHE"] = "1"
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# The suite's own persistent compilation cache, for one run and then deleted: many modules
+# compile the same programs (this file's helpers, padded to B balls and NT times, the fits of
+# the bundled tracks), and _free_compiled_programs below drops each module's programs when it
+# ends; from this cache a later module, or another pytest-xdist worker of the same run, loads
+# them instead of compiling them again (the closed-form reverse-mode gradient alone compiles
+# for 60-110 s). Programs that compile in under a second are not worth the disk.
+# (The controller names the run; its workers inherit the name with its environment.)
+_RUN = os.environ.setdefault("ESTIM_TESTS_RUN", uuid.uuid4().hex)
+CACHE_DIR = pathlib.Path(tempfile.gettempdir()) / f"estim-tests-jax-cache-{_RUN}"
+jax.config.update("jax_compilation_cache_dir", str(CACHE_DIR))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def pytest_sessionfinish(session):
+    if not hasattr(session.config, "workerinput"):  # the controller, after every worker ended
+        shutil.rmtree(CACHE_DIR, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -163,7 +185,14 @@ def _outputs(scene, theta, radius, position, velocity, t_end, ts):
     return traj.final.position, traj.events.t, traj.position, traj.complete.astype(jnp.float64)
 
 
-@jax.jit
+# The derivative programs compile with estim's own options for the closed-form path (a jit
+# around estim.simulate compiles with the caller's options, not estim's): with XLA:CPU's
+# fusion emitters, the reverse-mode gradient of 64 balls bouncing 1000 times ran for 40 s
+# instead of 0.1 s.
+derivative_jit = functools.partial(jax.jit, compiler_options=compile_options(CLOSED_FORM_COMPILE))
+
+
+@derivative_jit
 def jac_outputs(scene, theta, radius, position, velocity, t_end, ts):
     """Per-ball Jacobians (jax.jacfwd) of ``_outputs`` w.r.t. (e, mu_t, vx0).
 
@@ -179,7 +208,7 @@ def jac_outputs(scene, theta, radius, position, velocity, t_end, ts):
     return f(zero), jax.jacfwd(f)(zero)
 
 
-@jax.jit
+@derivative_jit
 def grad_final_x(scene, theta, radius, position, velocity, t_end, ts):
     """jax.grad of ball 0's final x w.r.t. its (e, mu_t, vx0), by reverse mode."""
 
