@@ -7,6 +7,7 @@ module compiles one closed-form and one ODE program (a few seconds, in the first
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -14,7 +15,13 @@ import pytest
 from conftest import ROOT
 
 import estim
-from estim.fitting._missing_physics import EXPLAINS, format_note, missing_physics
+from estim.fitting._missing_physics import (
+    EXPLAINS,
+    SPREAD,
+    format_note,
+    held_coefficients,
+    missing_physics,
+)
 
 DROP_XML = ROOT / "data" / "scenes" / "drop.xml"
 G = 9.81
@@ -119,3 +126,48 @@ def test_bad_input(drop):
             missing_physics(drop, ball, args["t_span"], args["noise_m"], "pingpong")
     with pytest.raises(ValueError, match="no force"):
         missing_physics(drop, ball, 1.0, 1e-3, "pingpong", density=0.0, viscosity=0.0)
+
+
+def test_a_held_drag_coefficient_is_probed_a_quarter_off(drop):
+    """In a scene with air, a drag coefficient the fit held is probed SPREAD (25%) larger:
+    dropped from rest under quadratic drag alone, the ball falls as z(t) = z0 -
+    ln(cosh(t sqrt(g k))) / k (Taylor, sec. 2.4), so the entry is the distance between the
+    falls with k and 1.25 k at the end of the span (it grows with t before the first
+    bounce)."""
+    z0, t_span, rho = 2.0, 0.5, 1.204
+    air = drop.with_air(estim.Air(rho, 0.0))
+    ball = _ball(air, z0)
+    r, m = float(ball.radius), float(ball.mass)
+
+    def fall(c_d):
+        k = rho * c_d * math.pi * r**2 / (2 * m)
+        return math.log(math.cosh(t_span * math.sqrt(G * k))) / k
+
+    (entry,) = held_coefficients(air, ball, t_span, 1e-3, "pingpong", ("drag_coefficient",))
+    assert SPREAD == 0.25
+    assert entry["effect"] == "a drag_coefficient 25% above the 0.47 held"
+    assert entry["max_deviation_mm"] == pytest.approx((fall(C_D) - fall(1.25 * C_D)) * 1e3, rel=1e-6)
+    assert entry["explains"] is (entry["noise_levels"] >= EXPLAINS)
+    assert entry["advice"] == "fit it (--also drag_coefficient)"
+    assert entry["air"] == {"density": rho, "viscosity": 0.0}
+    assert format_note(entry, m).startswith("a drag_coefficient 25% above the 0.47 held would move this 2.7 g ball by")
+
+
+def test_a_held_lift_factor_is_probed_only_for_a_spinning_ball(drop):
+    """The lift (Magnus) acceleration is proportional to the lift factor, so for a small
+    effect the ball moves SPREAD times as far as the whole Magnus effect does (spinning
+    against not spinning, in the same air): to a few percent, the second-order coupling
+    with drag. Without spin the factor does nothing and is not probed; nor are the
+    coefficients of a scene without air, or ones the fit did not hold."""
+    air = drop.with_air(estim.Air(1.204, 1.8e-5))
+    still = _ball(air)
+    spinning = dataclasses.replace(still, spin=np.array([0.0, -50.0, 0.0]))
+    drag, lift = held_coefficients(air, spinning, 1.0, 1e-3, "pingpong")
+    assert drag["effect"].startswith("a drag_coefficient") and lift["effect"] == "a lift_factor 25% above the 1 held"
+    _, magnus = missing_physics(drop, still, 1.0, 1e-3, "pingpong", density=1.204, viscosity=1.8e-5, spin=50.0)
+    assert lift["max_deviation_mm"] == pytest.approx(SPREAD * magnus["max_deviation_mm"], rel=0.05)
+    assert [x["effect"] for x in held_coefficients(air, still, 1.0, 1e-3, "pingpong")] == [drag["effect"]]
+    assert held_coefficients(air, spinning, 1.0, 1e-3, "pingpong", ()) == []
+    assert held_coefficients(drop, spinning, 1.0, 1e-3, "pingpong") == []
+    with pytest.raises(ValueError, match="among"):
+        held_coefficients(air, spinning, 1.0, 1e-3, "pingpong", ("e",))

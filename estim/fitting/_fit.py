@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import diffrax
@@ -60,7 +60,7 @@ from . import _registry as registry
 from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start, spin_start
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
-from ._missing_physics import format_note, missing_physics
+from ._missing_physics import HELD, format_note, held_coefficients, missing_physics
 from ._sharding import gather, mesh_of, padded_size, place
 
 __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
@@ -501,17 +501,18 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     results = {}
     for i, b in enumerate(names):
         results[b] = _report(scene, b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
-        explain_misfit(scene, results[b], problems[i])
+        explain_misfit(scene, results[b], problems[i], free)
     units = _Units(names=names, free=tuple(free), problems=problems, inits=inits, starts=starts,
                    theta=np.asarray(best_theta), noises=noises, floors=floors)
     return FitResult(results), units
 
 
-def explain_misfit(scene: Scene, report: BallFit, problem: _Problem) -> None:
-    """For a fit above its noise floor in a scene without air: how far the air the scene
-    leaves out would move this ball over this track (``estim.fitting._missing_physics``),
-    in ``report.missing_physics`` and, where it could explain the misfit, as a note."""
-    if report.at_noise_floor or scene.air is not None or not math.isfinite(report.rms_m):
+def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Sequence[str]) -> None:
+    """For a fit above its noise floor (``estim.fitting._missing_physics``): in a scene without
+    air, how far the air the scene leaves out would move this ball over this track; in a scene
+    with air, how far the air coefficients the fit held (not in ``free``) would, a quarter
+    off. In ``report.missing_physics`` and, where it could explain the misfit, as a note."""
+    if report.at_noise_floor or not math.isfinite(report.rms_m):
         return
     valid = np.asarray(problem.mask).any(axis=1)
     span = float(np.max(np.asarray(problem.t)[valid])) - report.values["t0"]
@@ -519,7 +520,11 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem) -> None:
         return
     params = registry.to_params(report.values, radius=problem.radius, mass=problem.mass,
                                 inertia=problem.inertia, scene=scene)
-    report.missing_physics = missing_physics(scene, params, span, report.noise_m, report.ball)
+    if scene.air is None:
+        report.missing_physics = missing_physics(scene, params, span, report.noise_m, report.ball)
+    else:
+        held = tuple(n for n in HELD if n not in free)
+        report.missing_physics = held_coefficients(scene, params, span, report.noise_m, report.ball, held)
     for m in report.missing_physics:
         if m["explains"]:
             m["advice_note"] = format_note(m, float(problem.mass))
@@ -810,7 +815,8 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
     if not keep.any():
         notes.append("no sample lies after the fitted release time t0: nothing was fitted")
     elif not at_floor:
-        notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {noise * 1e3:.2f} mm read from the data: a local minimum, or physics the model lacks (air drag)")
+        notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {noise * 1e3:.2f} mm read from the data: a local minimum, or physics the model lacks"
+                     + (" (air drag)" if scene.air is None else " (or air coefficients it holds)"))
         delay = float(np.min(problem.t[np.asarray(problem.mask).any(axis=1)])) - values["t0"]
         if delay > LATE_START:
             notes.append(f"the first sample is {delay:.2f} s after the release at t0 = {values['t0']:g} s: "

@@ -1,4 +1,5 @@
-"""Physics the scene lacks: would air explain residuals that stay above the noise floor?
+"""Physics the scene lacks, coefficients a fit held: would they explain residuals that stay
+above the noise floor?
 
 A scene without ``<option density viscosity>`` is a vacuum: flights are parabolas and a
 fit's residuals can reach the noise floor only if the real ball felt no air. For a light
@@ -18,6 +19,15 @@ is the size of the effect, not what would remain after refitting: a drag-free fi
 part of it into e and the release state (biasing them), so ``explains`` (at least
 :data:`EXPLAINS` noise levels) says the effect is large enough to matter, not that it is
 the only cause.
+
+In a scene with air, the effects are there but their coefficients may not be the ball's: a
+fit holds the drag coefficient and the lift factor at their values (the textbook ones by
+default) unless asked to fit them, and real balls differ from the textbook: flight experiments
+with table-tennis balls find both coefficients varying with the ball's speed and spin rate
+("Lift crisis of a spinning table tennis ball", C_D and C_L measured over 3e4 < Re < 9e4).
+When such a fit stays above its noise floor, :func:`held_coefficients` says how far each
+coefficient the fit held would move the ball if it were :data:`SPREAD` larger (a probe of
+plausible size, not a measured spread), and advises fitting it.
 
 Cost: one closed-form vacuum run and one ODE run (still air; a second run of the same
 compiled program for the spinning ball when a spin is given). The ODE program compiles
@@ -44,13 +54,17 @@ from ..model._air import Air
 from ..model._params import Params
 from ..model._scene import Scene
 
-__all__ = ["EXPLAINS", "SAMPLES", "format_note", "missing_physics"]
+__all__ = ["EXPLAINS", "HELD", "SAMPLES", "SPREAD", "format_note", "held_coefficients", "missing_physics"]
 
 # An effect that moves the ball by at least this many noise levels could explain residuals
 # above the noise floor (the fit's floor allows 1.3 noise levels of rms).
 EXPLAINS = 3.0
 # Sample times over [0, t_span] for the largest deviation.
 SAMPLES = 401
+# The air coefficients a fit may hold fixed (Params fields, named as in the parameter
+# registry), and how far from its held value each is probed (a quarter; module docstring).
+HELD = ("drag_coefficient", "lift_factor")
+SPREAD = 0.25
 
 
 def _number(x: float) -> str:
@@ -142,11 +156,7 @@ def missing_physics(
     ts = jnp.linspace(0.0, t_span, int(samples))
     run = simulate(scene, ball, t_span, ts=ts)  # closed form
     vacuum = np.asarray(run.position)  # (times, 3)
-    # Up to the first impact: after it the runs drift apart in phase (a bounce earlier or
-    # later), and their distance would measure that drift, not the force.
-    kind, count = np.asarray(run.events.kind), int(run.events.count)
-    impacts = np.asarray(run.events.t)[:count][kind[:count] == IMPACT]
-    flight = np.asarray(ts) <= (impacts[0] if impacts.size else t_span)
+    flight = _first_flight(run, ts, t_span)
 
     air_scene = scene.with_air(Air(density, viscosity))
     # The spinning ball is a second call of the same compiled program (one ball, the same
@@ -159,18 +169,84 @@ def missing_physics(
     option = f'<option density="{_number(density)}" viscosity="{_number(viscosity)}"/>'
 
     def entry(effect: str, a: np.ndarray, b: np.ndarray, advice: str) -> dict:
-        deviation = float(np.max(np.linalg.norm(a - b, axis=-1)[flight]))
-        levels = deviation / noise_m
-        return {"effect": effect, "ball": ball_label, "mass_kg": float(mass), "t_span_s": t_span,
-                "noise_mm": noise_m * 1e3, "max_deviation_mm": deviation * 1e3,
-                "noise_levels": levels, "explains": bool(levels >= EXPLAINS), "air": settings,
-                "advice": advice}
+        return _entry(effect, ball_label, mass, t_span, noise_m, settings, a, b, flight, advice)
 
     out = [entry("air drag", in_air[0], vacuum,
                  f"add {option} to the scene and fit drag_coefficient (--also drag_coefficient)")]
     if spin is not None:
         out.append(entry(f"a spinning ball (Magnus, {_short(float(spin))} rad/s backspin)", in_air[1], in_air[0],
                          f"add {option} to the scene and fit the spin (--also spin)"))
+    return out
+
+
+def _first_flight(run, ts, t_span: float) -> np.ndarray:
+    """The sample times up to the first impact of ``run`` (one ball): after it two runs drift
+    apart in phase (a bounce earlier or later), and their distance would measure that drift,
+    not the force."""
+    kind, count = np.asarray(run.events.kind), int(run.events.count)
+    impacts = np.asarray(run.events.t)[:count][kind[:count] == IMPACT]
+    return np.asarray(ts) <= (impacts[0] if impacts.size else t_span)
+
+
+def _entry(effect: str, ball_label: str, mass: float, t_span: float, noise_m: float, settings: dict,
+           a: np.ndarray, b: np.ndarray, flight: np.ndarray, advice: str) -> dict:
+    deviation = float(np.max(np.linalg.norm(a - b, axis=-1)[flight]))
+    levels = deviation / noise_m
+    return {"effect": effect, "ball": ball_label, "mass_kg": float(mass), "t_span_s": t_span,
+            "noise_mm": noise_m * 1e3, "max_deviation_mm": deviation * 1e3, "noise_levels": levels,
+            "explains": bool(levels >= EXPLAINS), "air": settings, "advice": advice}
+
+
+def held_coefficients(
+    scene: Scene,
+    params: Params,
+    t_span: float,
+    noise_m: float,
+    ball_label: str,
+    held: tuple[str, ...] = HELD,
+    *,
+    samples: int = SAMPLES,
+) -> list[dict]:
+    """How far each air coefficient a fit held fixed would move this ball over this track,
+    were it :data:`SPREAD` larger than the value held.
+
+    Args:
+        scene: the scene of the fit; without air the coefficients do nothing and the answer
+            is ``[]`` (see :func:`missing_physics`).
+        params: one ball, unbatched, as fitted, with its mass.
+        t_span, noise_m, ball_label, samples: as :func:`missing_physics`.
+        held: the coefficients the fit held (a subset of :data:`HELD`); the lift factor is
+            left out for a ball without spin, where it does nothing.
+
+    Returns:
+        One dict per coefficient, with the keys of :func:`missing_physics`'s entries;
+        ``effect`` reads e.g. ``"a drag_coefficient 25% above the 0.4 held"`` and ``advice``
+        ``"fit it (--also drag_coefficient)"``.
+    """
+    if scene.air is None:
+        return []
+    unknown = sorted(set(held) - set(HELD))
+    if unknown:
+        raise ValueError(f"held coefficients must be among {HELD}, got {unknown}")
+    if params.batch_shape != () or params.mass is None:
+        raise ValueError("params must be one ball (batch shape ()) with its mass")
+    held = tuple(n for n in held if n != "lift_factor" or np.any(np.asarray(params.spin) != 0))
+    if not held:
+        return []
+    t_span, noise_m = float(t_span), float(noise_m)
+    ts = jnp.linspace(0.0, t_span, int(samples))
+    # The probes are further calls of the fitted ball's compiled program (only values differ).
+    run = simulate(scene, params, t_span, ts=ts)
+    flight = _first_flight(run, ts, t_span)
+    settings = {"density": float(scene.air.density), "viscosity": float(scene.air.viscosity)}
+    out = []
+    for name in held:
+        value = float(getattr(params, name))
+        probe = dataclasses.replace(params, **{name: jnp.asarray(value * (1.0 + SPREAD))})
+        moved = np.asarray(simulate(scene, probe, t_span, ts=ts).position)
+        out.append(_entry(f"a {name} {SPREAD:.0%} above the {_short(value)} held", ball_label, float(params.mass),
+                          t_span, noise_m, settings, moved, np.asarray(run.position), flight,
+                          f"fit it (--also {name})"))
     return out
 
 

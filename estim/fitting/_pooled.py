@@ -482,7 +482,7 @@ def fit_clips(
         hist = history[group_of[i]]
         reports[label] = _report(scene, label, free, loss, theta_best[i], diag, i, units.problems[i], units.inits[i],
                                  hist, floors[i], units.noises[i])
-        explain_misfit(scene, reports[label], units.problems[i])
+        explain_misfit(scene, reports[label], units.problems[i], free)
     own = (_own_estimates(scene, units, individual, shared, theta_best, loss, max_segments, say) if per_clip
            else {n: [(math.nan, math.nan)] * n_units for n in shared})
     shared_fits = {b: _shared_fit(b, [i for i in range(n_units) if group_of[i] == g], labels, free, shared,
