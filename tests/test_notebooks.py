@@ -22,6 +22,7 @@ import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -56,8 +57,8 @@ def test_notebooks_are_marimo_apps():
     """Every notebook is a valid marimo app (``marimo check --strict``: parseable cells,
     no variable defined in two cells, no cycles), openable with ``marimo edit``."""
     names = sorted(p.name for p in NOTEBOOKS.glob("[0-9][0-9]_*.py"))
-    assert names[:5] == ["01_three_balls.py", "02_fit_video_tracks.py", "03_gradient_sanity.py",
-                         "04_accuracy_cost.py", "05_effects.py"]
+    assert names[:6] == ["01_three_balls.py", "02_fit_video_tracks.py", "03_gradient_sanity.py",
+                         "04_accuracy_cost.py", "05_effects.py", "06_table_tennis.py"]
     proc = subprocess.run([sys.executable, "-m", "marimo", "check", "--strict", *names],
                           cwd=NOTEBOOKS, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -175,3 +176,24 @@ def test_05_effects(tmp_path):
     effects = {e["effect"]: e["balls"] for e in s["effect_report"]["effects"]}
     for name in balls:
         assert 0 < effects["linear drag"][name]["bounce1_ms"] < 0.05 * effects["quadratic drag"][name]["bounce1_ms"]
+
+
+def test_06_table_tennis(tmp_path):
+    """The notebook checks its bounces against the friction law's closed forms and its edge
+    ball against the geometry itself (it fails otherwise); here, what it reports."""
+    proc = run_notebook("06_table_tennis.py", tmp_path)
+    assert_files(tmp_path, ["06_spin.png", "06_fit.png", "06_table_tennis.json"])
+    s = summary(proc, tmp_path, "06_table_tennis")
+    # Magnus: topspin lands first, backspin last.
+    t = s["bounce_t"]
+    assert t["topspin"] < t["no spin"] < t["backspin"]
+    # The edge ball touches the table's edge line (y = 1.37 m, z = 0) 1 cm beyond it: centre
+    # at height sqrt(r^2 - d^2), the normal from the edge to the centre.
+    r, d = 0.02, 0.01
+    np.testing.assert_allclose(s["edge"]["position"], [0.0, 1.37 + d, math.sqrt(r * r - d * d)], atol=1e-9)
+    np.testing.assert_allclose(s["edge"]["normal"], [0.0, d / r, math.sqrt(r * r - d * d) / r], atol=1e-9)
+    # The fit of the synthetic 3D shot reads the truth (e 0.88, mu 0.3, its spin).
+    fit = s["fit"]
+    assert abs(fit["e"] - 0.88) < 0.01 and abs(fit["mu"] - 0.3) < 0.03 and fit["spin_error"] < 0.1
+    # Every effect of the shot is many noise levels: the data tells them apart.
+    assert all(v["noise_levels"] > 10 for v in s["effects"].values()), s["effects"]
