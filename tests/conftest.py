@@ -50,6 +50,21 @@ jax.config.update("jax_compilation_cache_dir", str(CACHE_DIR))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+# The modules that take longest (minutes each on the 2-core CI machine), longest first.
+# pytest-xdist hands each worker a whole module at a time, in collection order: started
+# last, one of these would leave a worker running it alone at the end of the run.
+LONG_MODULES = ("test_pooled_calibration.py", "test_notebooks_fit.py", "test_hard_cases.py", "test_pooled.py",
+                "test_notebooks.py", "test_cli.py", "test_bench_accuracy.py", "test_fit.py", "test_native.py",
+                "test_fit_air.py", "test_fit_friction.py", "test_air_contacts.py", "test_exact_geometry.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The long modules first (``LONG_MODULES``), the rest in their usual order; each
+    module's tests keep theirs."""
+    rank = {name: k for k, name in enumerate(LONG_MODULES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_MODULES)))
+
+
 def pytest_sessionfinish(session):
     if not hasattr(session.config, "workerinput"):  # the controller, after every worker ended
         shutil.rmtree(CACHE_DIR, ignore_errors=True)

@@ -216,24 +216,6 @@ def test_forest_plot_draws_every_clip(tmp_path):
     assert (tmp_path / "forest.png").read_bytes().startswith(PNG)
 
 
-@pytest.mark.slow
-def test_shared_standard_errors_are_calibrated():
-    """20 repeats of 30 clips in air with known shared e = 0.85 and C_d = 0.5 (per-clip
-    release states from 0.3-0.6 m, 0.7 s at 50 Hz, 1 mm noise), all in one program (a group
-    per repeat): the truth lies inside the 95% interval in 17 to 20 of the 20 repeats, for
-    both."""
-    scene = estim.load_scene(DROP_AIR)
-    clips = []
-    for r in range(20):
-        clips += drops(scene, 0.85, 30, 100 + r, rate=50.0, span=0.7, heights=(0.3, 0.6), group=f"r{r}")[0]
-    res = fit_clips(scene, clips, shared=("e", "drag_coefficient"), restarts=0, steps=15, joint_steps=20,
-                    per_clip=False)
-    assert len(res.shared) == 20
-    for name, true in (("e", 0.85), ("drag_coefficient", 0.5)):
-        inside = sum(abs(sf.values[name] - true) < 1.96 * sf.stderr[name] for sf in res.shared.values())
-        assert 17 <= inside <= 20, (name, inside, [(sf.values[name], sf.stderr[name]) for sf in res.shared.values()])
-
-
 def test_pixel_scale_recovers_a_wrong_scale():
     """A track whose metres came from a scale 5% too small (positions shrunk by 1/1.05 about
     the surface under the first sample): fitting pixel_scale reads 1.05 back, and e with it."""
