@@ -11,6 +11,7 @@ Importing estim switches JAX's x64 mode on; every helper computes in float64.
 
 from __future__ import annotations
 
+import atexit
 import functools
 import gc
 import os
@@ -51,8 +52,9 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 # The modules that take longest (minutes each on the 2-core CI machine), longest first.
-# pytest-xdist hands each worker a whole module at a time, in collection order: started
-# last, one of these would leave a worker running it alone at the end of the run.
+# pytest-xdist hands each worker a whole module at a time, in collection order
+# (--no-loadscope-reorder in pyproject.toml): started last, one of these would leave a
+# worker running it alone at the end of the run.
 LONG_MODULES = ("test_pooled_calibration.py", "test_notebooks_fit.py", "test_hard_cases.py", "test_pooled.py",
                 "test_notebooks.py", "test_cli.py", "test_bench_accuracy.py", "test_fit.py", "test_native.py",
                 "test_fit_air.py", "test_fit_friction.py", "test_air_contacts.py", "test_exact_geometry.py")
@@ -65,9 +67,9 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(LONG_MODULES)))
 
 
-def pytest_sessionfinish(session):
-    if not hasattr(session.config, "workerinput"):  # the controller, after every worker ended
-        shutil.rmtree(CACHE_DIR, ignore_errors=True)
+if "PYTEST_XDIST_WORKER" not in os.environ:  # the controller (or the only process)
+    # At its exit, after every worker ended.
+    atexit.register(shutil.rmtree, CACHE_DIR, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")
