@@ -210,7 +210,7 @@ class BallFit:
     model_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     model_position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    missing_physics: list[dict] = field(default_factory=list)  # effects the scene leaves out
+    missing_physics: list[dict] = field(default_factory=list)  # effects the scene lacks, or coefficients held
 
     def to_json(self) -> dict:
         """The values by their registry names (those that act in the fit's scene), the
