@@ -18,6 +18,7 @@ from ._config import enable_compilation_cache as enable_compilation_cache
 from .fitting._fit import BallFit as BallFit
 from .fitting._fit import FitResult as FitResult
 from .fitting._fit import fit as fit
+from .fitting._image import fit_image as fit_image
 from .fitting._job import fit_files as fit_files
 from .fitting._job import fit_pixels as fit_pixels
 from .fitting._job import read_pixel_clip as read_pixel_clip
@@ -48,15 +49,23 @@ from .model._params import Params as Params
 from .model._scene import Ball as Ball
 from .model._scene import Scene as Scene
 from .model._scene import load_scene as load_scene
+from .tracks._camera import Camera as Camera
+from .tracks._camera import CameraError as CameraError
+from .tracks._camera import read_camera as read_camera
 from .tracks._csv import Tracks as Tracks
 from .tracks._csv import TracksError as TracksError
 from .tracks._csv import read_tracks_csv as read_tracks_csv
 from .tracks._csv import write_tracks_csv as write_tracks_csv
+from .tracks._exports import read_kinovea as read_kinovea
+from .tracks._exports import read_tracker as read_tracker
+from .tracks._image import ImageTracks as ImageTracks
+from .tracks._image import read_image_tracks_csv as read_image_tracks_csv
 from .tracks._pixels import PixelTrack as PixelTrack
 from .tracks._pixels import estimate_pixel_scale as estimate_pixel_scale
 from .tracks._pixels import estimate_surface_row as estimate_surface_row
 from .tracks._pixels import read_pixel_track as read_pixel_track
 from .tracks._pixels import restitution_from_flight_times as restitution_from_flight_times
+from .tracks._reconstruct import reconstruct as reconstruct
 from .tracks._synthetic import synthesize_tracks as synthesize_tracks
 
 __version__ = "0.1.0"
@@ -73,7 +82,7 @@ _LAZY = {
     "write_gif": ".show._replay", "write_mp4": ".show._replay", "write_video": ".show._replay",
     "SideView": ".show._sideview", "render_sideview": ".show._sideview",
     "write_outputs": ".show._outputs", "write_pooled_outputs": ".show._outputs",
-    "plot_forest": ".show._forest",
+    "plot_forest": ".show._forest", "plot_image_fit": ".show._image_plots", "plot_path": ".show._image_plots",
 }
 
 

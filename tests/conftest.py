@@ -57,7 +57,8 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 # worker running it alone at the end of the run.
 LONG_MODULES = ("test_pooled_calibration.py", "test_notebooks_fit.py", "test_hard_cases.py", "test_pooled.py",
                 "test_notebooks.py", "test_cli.py", "test_bench_accuracy.py", "test_fit.py", "test_native.py",
-                "test_fit_air.py", "test_fit_friction.py", "test_air_contacts.py", "test_exact_geometry.py")
+                "test_fit_air.py", "test_fit_friction.py", "test_air_contacts.py", "test_exact_geometry.py",
+                "test_image_fit.py", "test_notebooks_cameras.py")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -57,8 +57,8 @@ def test_notebooks_are_marimo_apps():
     """Every notebook is a valid marimo app (``marimo check --strict``: parseable cells,
     no variable defined in two cells, no cycles), openable with ``marimo edit``."""
     names = sorted(p.name for p in NOTEBOOKS.glob("[0-9][0-9]_*.py"))
-    assert names[:6] == ["01_three_balls.py", "02_fit_video_tracks.py", "03_gradient_sanity.py",
-                         "04_accuracy_cost.py", "05_effects.py", "06_table_tennis.py"]
+    assert names[:7] == ["01_three_balls.py", "02_fit_video_tracks.py", "03_gradient_sanity.py",
+                         "04_accuracy_cost.py", "05_effects.py", "06_table_tennis.py", "07_cameras.py"]
     proc = subprocess.run([sys.executable, "-m", "marimo", "check", "--strict", *names],
                           cwd=NOTEBOOKS, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -175,3 +175,4 @@ def test_06_table_tennis(tmp_path):
     assert abs(fit["e"] - 0.88) < 0.01 and abs(fit["mu"] - 0.3) < 0.03 and fit["spin_error"] < 0.1
     # Every effect of the shot is many noise levels: the data tells them apart.
     assert all(v["noise_levels"] > 10 for v in s["effects"].values()), s["effects"]
+

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import re
@@ -15,14 +16,25 @@ import jax
 from .._config import enable_compilation_cache
 from .._json import dumps
 from ..fitting import _registry as registry
-from ..fitting._job import PIXEL_FREE, fit_csv, fit_files, fit_pixels
+from ..fitting._image import default_image_free
+from ..fitting._job import (
+    EXPORTS,
+    PIXEL_FREE,
+    fit_csv,
+    fit_export,
+    fit_files,
+    fit_image_csv,
+    fit_pixels,
+)
 from ..fitting._simulation_report import SENSITIVITY_NAMES, sensitivities, simulation_report
 from ..forward._balls import check_outside
 from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY, effect_sizes
 from ..forward._simulate import simulate
 from ..forward.laws import law_of
 from ..model._scene import load_scene
+from ..tracks._camera import read_camera
 from ..tracks._csv import MAX_ABS_POSITION, MAX_ABS_TIME
+from ..tracks._image import read_image_tracks_csv
 from ._bench import (
     format_accuracy,
     format_clips_bench,
@@ -133,6 +145,28 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--json", action="store_true", help="print the fit.json object to stdout")
     fit.add_argument("--loss", default="cauchy", choices=("cauchy", "huber", "l2"),
                      help="robust loss (default cauchy)")
+    fit.add_argument("--camera", action="append", default=None, metavar="CAM",
+                     help="a calibrated camera (OpenCV FileStorage YAML/JSON, or the short form rvec, "
+                          "tvec, f, w, h); the tracks file is then an image-track CSV t,ball,u,v[,camera] "
+                          "in pixels, fitted in pixels; repeat for several cameras (the camera column "
+                          "names them by file stem or number)")
+    fit.add_argument("--format", default="csv", choices=("csv",) + tuple(EXPORTS),
+                     help="the tracks file: estim's CSV (default), or a video tracker's export: Tracker's "
+                          "'Export Data' text, Kinovea's trajectory CSV or Gnuplot text (with --units)")
+    fit.add_argument("--units", choices=("m", "px"), default=None,
+                     help="with --format tracker|kinovea: the export's units, metres (calibrated) or pixels "
+                          "(then with --camera, --origin and --y-up or --y-down)")
+    fit.add_argument("--origin", type=_finite, nargs=2, default=None, metavar=("U0", "V0"),
+                     help="an export in pixels: the OpenCV pixel (u right, v down) of the export's origin")
+    updown = fit.add_mutually_exclusive_group()
+    updown.add_argument("--y-up", dest="y_up", action="store_const", const=True, default=None,
+                        help="an export in pixels: its y grows upward in the image (Tracker's axes)")
+    updown.add_argument("--y-down", dest="y_up", action="store_const", const=False,
+                        help="an export in pixels: its y grows downward (Kinovea's image space)")
+    fit.add_argument("--angle", type=_finite, default=None, metavar="DEG",
+                     help="an export in pixels: the angle of its x axis, counter-clockwise (default 0)")
+    fit.add_argument("--time-unit", choices=("s", "ms"), default=None,
+                     help="with --format kinovea: the unit of its time column, where the header does not say")
     fit.add_argument("--pixels", action="store_true",
                      help="the file is an 'a;b;' pixel track (rows grow downward)")
     fit.add_argument("--frame-interval", type=_finite, default=None,
@@ -265,7 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "fitted parameters. --view side draws the same with matplotlib "
                                      "(no OpenGL needed). Exit code 0 on success, 1 when MuJoCo "
                                      "cannot render here, 2 on bad input.")
-    rep.add_argument("tracks", help="tracks CSV (t,ball,x,z[,y] in s and m)")
+    rep.add_argument("tracks", help="tracks CSV (t,ball,x,z[,y] in s and m), or with --camera the image-track "
+                                    "CSV (t,ball,u,v[,camera]) that the fit read")
     rep.add_argument("fit", help="fit.json written by `estim fit`")
     rep.add_argument("--scene", default=None,
                      help="MJCF scene file (default: data/scenes/stairs.xml)")
@@ -279,6 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="seconds of recent measured samples shown as dots (default 0.3; 0: none)")
     rep.add_argument("--view", choices=("mujoco", "side"), default="mujoco",
                      help="mujoco: 3-D offscreen rendering (default); side: matplotlib x-z view")
+    rep.add_argument("--camera", action="append", default=None, metavar="CAM",
+                     help="the cameras of a fit in pixels (as given to `estim fit`); MuJoCo renders from the "
+                          "first one's viewpoint, the tracked pixels placed on their rays at the fitted depth")
     rep.set_defaults(func=_cmd_replay)
     return parser
 
@@ -537,7 +575,7 @@ def _cmd_demo(args) -> int:
 def _cmd_replay(args) -> int:
     from ..show._replay import EncoderNotFoundError, RenderError, check_output  # lazy: MuJoCo
 
-    for what, path in (("tracks", args.tracks), ("fit", args.fit)):
+    for what, path in (("tracks", args.tracks), ("fit", args.fit), *(("camera", c) for c in args.camera or ())):
         if not os.path.isfile(path):
             raise FileNotFoundError(f"{what} file not found: {path}")
     if not args.fps > 0:
@@ -553,6 +591,16 @@ def _cmd_replay(args) -> int:
         raise UsageError(str(err)) from None
     scene = args.scene or default_scene_path()
     options = dict(fps=args.fps, width=args.width, height=args.height, trail=args.trail)
+    if args.camera:
+        if args.view == "side":
+            raise UsageError("--camera renders from the camera's viewpoint with MuJoCo; --view side is a matplotlib x-z view")
+        from ..show._image_plots import replay_samples  # lazy: matplotlib
+
+        cameras = [read_camera(p) for p in args.camera]
+        tracks = read_image_tracks_csv(args.tracks, cameras)
+        with open(args.fit) as f:
+            fit = json.load(f)
+        args.tracks, options["camera"] = replay_samples(tracks, fit), cameras[0]
     if args.view == "side":
         from ..show._sideview import render_sideview  # lazy: matplotlib
 
@@ -597,9 +645,10 @@ def _check_pixel_options(args) -> None:
     else:
         if args.from_bounce:
             raise UsageError("--from-bounce only applies with --pixels")
-        for flag in ("frame_interval", "metres_per_pixel", "ball"):
+        for flag in ("frame_interval", "metres_per_pixel") + (("ball",) if args.format == "csv" else ()):
             if getattr(args, flag) is not None:
-                raise UsageError(f"--{flag.replace('_', '-')} only applies with --pixels")
+                raise UsageError(f"--{flag.replace('_', '-')} only applies with --pixels"
+                                 + (" or --format tracker|kinovea" if flag == "ball" else ""))
 
 
 def _distributed_settings() -> dict:
@@ -645,33 +694,8 @@ def _cmd_fit_clips(args, scene, say) -> int:
     return 0 if result.converged else 1
 
 
-def _cmd_fit(args) -> int:
-    scene = load_scene(args.scene or default_scene_path())
-    for path in args.tracks:
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"tracks file not found: {path}")
-    _check_pixel_options(args)
-    say = progress()
-    if args.shared is not None:
-        return _cmd_fit_clips(args, scene, say)
-    for flag in ("devices", "distributed"):
-        if getattr(args, flag):
-            raise UsageError(f"--{flag} only applies with --shared (a fit of several clips)")
-    if len(args.tracks) > 1:
-        raise UsageError(f"{len(args.tracks)} files: fitting several clips together needs --shared "
-                         "NAMES (the parameters they share, e.g. --shared e); fit them one at a "
-                         "time otherwise")
-    args.tracks = args.tracks[0]
-    extra = {}
-    if args.pixels:
-        result, data, scale, row = fit_pixels(
-            args.tracks, scene, ball=args.ball, frame_interval=args.frame_interval,
-            metres_per_pixel=args.metres_per_pixel, from_bounce=args.from_bounce, say=say,
-            loss=args.loss, **_also(args, PIXEL_FREE))
-        extra = {"metres_per_pixel": scale, "surface_row_px": row,
-                 "frame_interval_s": args.frame_interval}
-    else:
-        result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss, **_also(args, scene))
+def _finish_fit(args, result, data, extra, say) -> int:
+    """fit.json and the plots (with --out), the table or the JSON; the exit code."""
     payload = result.to_json()
     payload.update(extra)
     if args.out:
@@ -683,6 +707,77 @@ def _cmd_fit(args) -> int:
         print(dumps(payload, indent=2))
     else:
         print(result.format_table())
-        if extra:
+        if "metres_per_pixel" in extra:
             print(f"scale {extra['metres_per_pixel'] * 1e3:.4f} mm/px, surface row {extra['surface_row_px']:.1f} px")
     return 0 if result.converged else 1
+
+
+def _cmd_fit_image(args, scene, say) -> int:
+    """``estim fit TRACKS --camera CAM [--camera CAM2 ...]``: a fit in pixels."""
+    result, tracks = fit_image_csv(args.tracks, args.camera, scene, say=say, loss=args.loss,
+                                   **_also(args, default_image_free(scene, len(args.camera))))
+    return _finish_fit(args, result, tracks, {"cameras": [c.to_json() for c in tracks.cameras]}, say)
+
+
+def _cmd_fit_export(args, scene, say) -> int:
+    """``estim fit EXPORT --format tracker|kinovea --units m|px ...``."""
+    if args.pixels:
+        raise UsageError("--pixels reads an 'a;b;' pixel track; a tracker's export in pixels takes --units px "
+                         "and --camera")
+    if args.units is None:
+        raise UsageError(f"--format {args.format} needs --units m or px: the export does not say reliably")
+    if args.time_unit is not None and args.format != "kinovea":
+        raise UsageError("--time-unit only applies with --format kinovea")
+    if args.camera and len(args.camera) > 1:
+        raise UsageError("a tracker's export is one video: give one --camera")
+    reader = {"ball": args.ball, "origin": args.origin, "y_up": args.y_up, "angle_deg": args.angle}
+    if args.format == "kinovea":
+        reader["time_unit"] = args.time_unit
+    camera = args.camera[0] if args.camera else None
+    free = default_image_free(scene, 1) if args.units == "px" else scene
+    result, data = fit_export(args.tracks, args.format, scene, units=args.units, camera_path=camera, say=say,
+                              reader=reader, loss=args.loss, **_also(args, free))
+    extra = {"cameras": [c.to_json() for c in data.cameras]} if args.units == "px" else {}
+    return _finish_fit(args, result, data, extra, say)
+
+
+def _cmd_fit(args) -> int:
+    scene = load_scene(args.scene or default_scene_path())
+    for path in args.tracks:
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"tracks file not found: {path}")
+    _check_pixel_options(args)
+    say = progress()
+    if args.shared is not None:
+        if args.camera:
+            raise UsageError("--shared with --camera: fits of several image-track files together are not "
+                             "supported; fit each file on its own")
+        return _cmd_fit_clips(args, scene, say)
+    for flag in ("devices", "distributed"):
+        if getattr(args, flag):
+            raise UsageError(f"--{flag} only applies with --shared (a fit of several clips)")
+    if len(args.tracks) > 1:
+        raise UsageError(f"{len(args.tracks)} files: fitting several clips together needs --shared "
+                         "NAMES (the parameters they share, e.g. --shared e); fit them one at a "
+                         "time otherwise")
+    args.tracks = args.tracks[0]
+    extra = {}
+    if args.format != "csv":
+        return _cmd_fit_export(args, scene, say)
+    for flag in ("units", "origin", "y_up", "angle", "time_unit"):
+        if getattr(args, flag) is not None:
+            raise UsageError(f"--{flag.replace('_', '-')} only applies with --format tracker|kinovea")
+    if args.camera:
+        if args.pixels:
+            raise UsageError("--pixels (a side view at one scale) and --camera (calibrated cameras) exclude each other")
+        return _cmd_fit_image(args, scene, say)
+    if args.pixels:
+        result, data, scale, row = fit_pixels(
+            args.tracks, scene, ball=args.ball, frame_interval=args.frame_interval,
+            metres_per_pixel=args.metres_per_pixel, from_bounce=args.from_bounce, say=say,
+            loss=args.loss, **_also(args, PIXEL_FREE))
+        extra = {"metres_per_pixel": scale, "surface_row_px": row,
+                 "frame_interval_s": args.frame_interval}
+    else:
+        result, data = fit_csv(args.tracks, scene, say=say, loss=args.loss, **_also(args, scene))
+    return _finish_fit(args, result, data, extra, say)

@@ -35,6 +35,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -55,6 +56,7 @@ from ..forward._trajectory import IMPACT, list_events, sample
 from ..forward.laws import law_of
 from ..model._params import Params
 from ..model._scene import Scene
+from ..tracks._camera import CameraArrays
 from ..tracks._csv import check_units
 from . import _registry as registry
 from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start, spin_start
@@ -89,6 +91,22 @@ class _Problem(eqx.Module):
     scale: jax.Array  # () noise level s of the robust loss (m)
     anchor: jax.Array  # (3,) the point the observations scale about (pixel_scale)
     size: jax.Array  # () the track's own samples: the first ``size`` of the N
+    view: jax.Array  # (N,) int: the camera that saw each row (image tracks; 0 otherwise)
+    cameras: CameraArrays | None  # image tracks: the cameras, obs holding (u, v, 0); else None
+
+
+class ImageRows(NamedTuple):
+    """Image tracks of one key of a fit (``estim.fitting._image``): the rows' times on
+    their cameras' clocks, their pixels ``(n, 2)`` (NaN where lost), the camera of each
+    row, the cameras, the pixels' noise level (px), and the starting values read off the
+    start path (``Initial``: the flights of a track in metres cannot be read there)."""
+
+    t: np.ndarray
+    uv: np.ndarray
+    view: np.ndarray
+    cameras: CameraArrays
+    noise: float
+    initial: Initial
 
 
 # The ODE path's settings in a fit (scenes with air): the defaults of estim.simulate, with a
@@ -96,11 +114,20 @@ class _Problem(eqx.Module):
 FIT_ODE = dict(rtol=_ode.RTOL, atol=_ode.ATOL, contact_slack=_ode.SLACK, max_steps=1024)
 
 
+def _clock(phi, problem: _Problem):
+    """The rows' times on the model's clock, before the release at t0 is taken off: each
+    row's time plus its camera's offset (image tracks of several cameras; camera 1's is 0)."""
+    if problem.cameras is None:
+        return problem.t
+    offsets = jnp.concatenate([jnp.zeros(1), phi[registry.index(registry.component("dt_camera2").components)]])
+    return problem.t + offsets[problem.view]
+
+
 def _model(scene: Scene, phi, problem: _Problem):
     """The model's parameters, sample times and end time for physical values phi."""
     values = registry.unpack(phi)
     params = registry.to_params(values, radius=problem.radius, mass=problem.mass, inertia=problem.inertia, scene=scene)
-    ts = jnp.clip(problem.t - values["t0"], 0.0, None)
+    ts = jnp.clip(_clock(phi, problem) - values["t0"], 0.0, None)
     return params, ts, jnp.maximum(jnp.max(ts), 1e-3)
 
 
@@ -140,13 +167,18 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
 def _residuals(scene, phi, problem, pl, n_used):
     """Masked residuals (flattened), which entries are valid, model positions, impacts."""
     pos, events, ts = _simulate_at(scene, phi, problem, pl, n_used)
-    valid = problem.mask & (problem.t >= registry.value(phi, "t0"))[:, None]
-    # A pixel track's metres are its pixels times a scale read off the data; the fitted
-    # factor pixel_scale corrects that scale about the track's anchor (its surface). The
-    # model is brought to the data's metres, not the data to the model's: residuals stay in
-    # the units of the data's noise, and no scale can shrink them all to nothing.
-    pos = problem.anchor + (pos - problem.anchor) / registry.value(phi, "pixel_scale")
-    r = jnp.where(valid, pos - problem.obs, 0.0).reshape(-1)
+    valid = problem.mask & (_clock(phi, problem) >= registry.value(phi, "t0"))[:, None]
+    if problem.cameras is None:
+        # A pixel track's metres are its pixels times a scale read off the data; the fitted
+        # factor pixel_scale corrects that scale about the track's anchor (its surface). The
+        # model is brought to the data's metres, not the data to the model's: residuals stay
+        # in the units of the data's noise, and no scale can shrink them all to nothing.
+        seen = problem.anchor + (pos - problem.anchor) / registry.value(phi, "pixel_scale")
+    else:
+        # Image tracks: the model seen by the camera of each row, in pixels (u, v, 0).
+        uv = problem.cameras.project(pos, problem.view)
+        seen = jnp.concatenate([uv, jnp.zeros_like(uv[:, :1])], axis=1)
+    r = jnp.where(valid, seen - problem.obs, 0.0).reshape(-1)
     impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts))).astype(jnp.int32)
     return r, (valid.reshape(-1), pos, impacts)
 
@@ -197,8 +229,8 @@ class BallFit:
     stderr: dict[str, float]
     names: tuple[str, ...]
     correlation: np.ndarray
-    rms_m: float  # rms residual of the inliers (m)
-    noise_m: float  # noise level read from the data (m)
+    rms_m: float  # rms residual of the inliers (m; pixels where ``unit`` is "px")
+    noise_m: float  # noise level read from the data (m; pixels where ``unit`` is "px")
     n_obs: int  # samples compared with the model (rows with at least one coordinate)
     n_outliers: int  # samples the robust loss set aside (|r| > 5 noise)
     n_bounces: int  # impacts of the fitted model within the data
@@ -211,6 +243,8 @@ class BallFit:
     model_position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     missing_physics: list[dict] = field(default_factory=list)  # effects the scene lacks, or coefficients held
+    unit: str = "m"  # of the residuals: "m" (tracks in metres) or "px" (image tracks, estim.fit_image)
+    depth: dict | None = None  # image tracks: how well the pixels fix the path's depth (estim.fitting._image)
 
     def to_json(self) -> dict:
         """The values by their registry names (those that act in the fit's scene), the
@@ -225,8 +259,7 @@ class BallFit:
             fitted={"t": self.model_t.tolist(), "position": self.model_position.tolist()},
             stderr={k: (None if not math.isfinite(v) else v) for k, v in self.stderr.items()},
             correlation={"names": list(self.names), "matrix": np.round(self.correlation, 6).tolist()},
-            rms_m=self.rms_m,
-            noise_m=self.noise_m,
+            **{f"rms_{self.unit}": self.rms_m, f"noise_{self.unit}": self.noise_m},
             n_obs=self.n_obs,
             n_outliers=self.n_outliers,
             n_bounces=self.n_bounces,
@@ -236,6 +269,8 @@ class BallFit:
         )
         if self.missing_physics:
             out["missing_physics"] = self.missing_physics
+        if self.depth is not None:
+            out["depth"] = self.depth
         return out
 
 
@@ -265,7 +300,8 @@ class FitResult:
         fitted = {n for bf in self.balls.values() for n in bf.names}
         columns = registry.shown({n for bf in self.balls.values() for n in bf.values}, fitted)
         labels = "".join(f" {registry.component(n).label(n):>17}" for n in columns)
-        head = f"{'ball':<10}{labels} {'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
+        pixels = any(bf.unit == "px" for bf in self.balls.values())
+        head = f"{'ball':<10}{labels} {'rms (px)' if pixels else 'rms (mm)':>9} {'n':>5} {'bounces':>7}  status"
         rows = [head, "-" * len(head)]
         for ball, bf in self.balls.items():
             status = "converged" if bf.converged else "NOT converged"
@@ -274,7 +310,7 @@ class FitResult:
             cells = "".join(f" {pm(bf, n):>17}" for n in columns)
             rows.append(
                 f"{ball:<10}{cells} "
-                f"{bf.rms_m * 1e3:9.2f} {bf.n_obs:5d} {bf.n_bounces:7d}  {status}"
+                f"{bf.rms_m * (1.0 if bf.unit == 'px' else 1e3):9.2f} {bf.n_obs:5d} {bf.n_bounces:7d}  {status}"
             )
             rows.extend(f"{'':<10} note: {n}" for n in bf.notes)
         return "\n".join(rows)
@@ -359,9 +395,13 @@ class _Units:
 
 
 def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, progress, balls, anchors=None,
-             devices=None):
+             devices=None, images=None, explore=False):
     """:func:`fit`, and what it worked on (``_Units``); the keys split over ``devices``
-    (``estim.fitting._sharding``; default: one device)."""
+    (``estim.fitting._sharding``; default: one device). A key of ``images``
+    (:class:`ImageRows`) is fitted to its pixels; its ``data`` is then a 3-D start (the
+    path the starts are read from, ``estim.tracks._reconstruct``). With ``explore`` every
+    key runs every restart, at its noise floor or not (where the floor itself is uncertain:
+    a few frames of pixels)."""
     require_x64()
     if loss not in ROBUST_LOSSES:
         raise ValueError(f"unknown loss {loss!r}; choose one of {ROBUST_LOSSES}")
@@ -377,6 +417,13 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     registry.check_acting(scene, free)
     if set(registry.FACTOR_FREE) <= set(free) and "y0" not in free and lateral:
         free = tuple(free) + tuple(n for n in registry.LATERAL if n not in free)  # 3-D tracks: the lateral release state too
+    images = images or {}
+    n_cameras = min((len(images[b].cameras.matrix) if b in images else 1) for b in names) if names else 1
+    offsets = registry.component("dt_camera2").components
+    unseen = [n for n in offsets[n_cameras - 1:] if n in free]
+    if unseen:
+        raise ValueError(f"fitting {unseen}: the clock offsets of cameras this data does not have "
+                         f"({n_cameras} camera(s); image tracks, estim.fit_image)")
     if not names:
         raise ValueError("no balls to fit")
     gravity = _gravity_vector(scene)
@@ -384,32 +431,45 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     if "t0" not in free:
         _check_release_time(data, fixed)
     starts, problems, inits = [], [], []
-    n_max = max(len(np.asarray(data[b][0])) for b in names)
+    n_max = max(len(images[b].t) if b in images else len(np.asarray(data[b][0])) for b in names)
     for b in names:
         spec = scene.ball(ball_of[b])
         t, pos = (np.asarray(a, dtype=np.float64) for a in data[b])
         release = fixed.get(b, {}).get("t0", 0.0)
-        init = release_start(t, pos, gravity, release_time=release, curved=scene.air is not None)
-        if scene.air is not None:
+        if b in images:
+            init = images[b].initial
+        else:
+            init = release_start(t, pos, gravity, release_time=release, curved=scene.air is not None)
+        if scene.air is not None and b not in images:
             init = dataclasses.replace(init, spin=spin_start(init, t, pos, gravity, scene.air, spec.radius, spec.mass,
                                                              fixed.get(b, {}).get("lift_factor", 1.0)))
         inits.append(init)
         values = registry.starting_values(spec, init, free)
         values.update(fixed.get(b, {}))
         phi = registry.pack(values)
+        if b in images:
+            rows = images[b]
+            t = rows.t
+            obs = np.concatenate([rows.uv, np.zeros((len(t), 1))], axis=1)
+            mask = np.concatenate([np.isfinite(obs[:, :2]).all(axis=1, keepdims=True).repeat(2, axis=1),
+                                   np.zeros((len(t), 1), bool)], axis=1)
+            view, cameras, noise = np.asarray(rows.view, dtype=np.int64), rows.cameras, rows.noise
+        else:
+            obs, mask, view, cameras, noise = pos, np.isfinite(pos), np.zeros(len(t), np.int64), None, init.noise
         pad = n_max - len(t)
-        mask = np.isfinite(pos)
         problems.append(_Problem(
             t=np.concatenate([t, np.full(pad, t[-1])]),
-            obs=np.concatenate([np.nan_to_num(pos), np.zeros((pad, 3))]),
+            obs=np.concatenate([np.nan_to_num(obs), np.zeros((pad, 3))]),
             mask=np.concatenate([mask, np.zeros((pad, 3), bool)]),
             radius=np.float64(spec.radius),
             mass=np.float64(spec.mass),
             inertia=np.float64(spec.inertia),
             fixed=phi,
-            scale=np.float64(init.noise if np.isfinite(init.noise) and init.noise > 0 else 2e-3),
+            scale=np.float64(noise if np.isfinite(noise) and noise > 0 else (1.0 if b in images else 2e-3)),
             anchor=np.asarray((anchors or {}).get(b, (0.0, 0.0, 0.0)), dtype=np.float64),
             size=np.int64(len(t)),
+            view=np.concatenate([view, np.zeros(pad, np.int64)]),
+            cameras=cameras,
         ))
         starts.append(registry.to_theta(phi, free))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
@@ -470,15 +530,17 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     rng = np.random.default_rng(0)
     grid = np.linspace(0.3, 0.9, restarts) if restarts > 1 else np.array([0.6])
     for attempt in range(restarts):
-        if all(floors):
+        todo = [explore or not ok for ok in floors]
+        if not any(todo):
             break
-        say(f"restart {attempt + 1}: {[n for n, ok in zip(names, floors, strict=True) if not ok]} above the noise floor")
+        say(f"restart {attempt + 1}: {[n for n, go in zip(names, todo, strict=True) if go]}"
+            + ("" if explore else " above the noise floor"))
         trial = np.asarray(best_theta).copy()
-        for i, ok in enumerate(floors):
-            if not ok:
+        for i, go in enumerate(todo):
+            if go:
                 trial[i] = _restart(starts[i], free, problems[i].fixed, inits[i],
                                     fixed.get(names[i], {}), grid[attempt], rng)
-        rows = [i for i, ok in enumerate(floors) if not ok]
+        rows = [i for i, go in enumerate(todo) if go]
         tried, at = run_rows(trial, batch, rows)
         for k, i in enumerate(at):
             if _objective(tried[2], k, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
@@ -520,15 +582,34 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Seque
         return
     params = registry.to_params(report.values, radius=problem.radius, mass=problem.mass,
                                 inertia=problem.inertia, scene=scene)
+    noise = report.noise_m * metres_per_unit(problem, report.model_position)
     if scene.air is None:
-        report.missing_physics = missing_physics(scene, params, span, report.noise_m, report.ball)
+        report.missing_physics = missing_physics(scene, params, span, noise, report.ball)
     else:
         held = tuple(n for n in HELD if n not in free)
-        report.missing_physics = held_coefficients(scene, params, span, report.noise_m, report.ball, held)
+        report.missing_physics = held_coefficients(scene, params, span, noise, report.ball, held)
     for m in report.missing_physics:
         if m["explains"]:
             m["advice_note"] = format_note(m, float(problem.mass))
             report.notes.append(m["advice_note"])
+
+
+def metres_per_unit(problem: _Problem, position) -> float:
+    """Metres per unit of a problem's residuals: 1 for tracks in metres; for image tracks
+    the median, over the rows, of a pixel's size at the fitted ball (depth over focal
+    length), which turns the pixels' noise into the metres that effect sizes compare."""
+    if problem.cameras is None:
+        return 1.0
+    n = int(problem.size)
+    view = np.asarray(problem.view)[:n]
+    cams = jax.tree.map(np.asarray, problem.cameras)
+    depth = np.einsum("ni,ni->n", cams.rotation[view, 2], np.asarray(position)[:n]) + cams.translation[view, 2]
+    return float(np.median(depth / cams.matrix[view, 0, 0]))
+
+
+def amount(value: float, unit: str) -> str:
+    """A residual or a noise level as the tables print it: ``"1.23 mm"`` or ``"0.87 px"``."""
+    return f"{value:.2f} px" if unit == "px" else f"{value * 1e3:.2f} mm"
 
 
 # A track that starts this long after the release (s) is worth a word when its fit fails:
@@ -755,7 +836,9 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
     phi = registry.to_physical(np.asarray(theta), free, problem.fixed)
     # The values of the parameters that act in the scene (under the friction law: mu, not mu_t).
     acting = registry.acting(scene)
-    values = {n: float(v) for n, v in registry.unpack(phi).items() if n in acting}
+    n_cameras = 1 if problem.cameras is None else len(problem.cameras.matrix)
+    unseen = registry.component("dt_camera2").components[n_cameras - 1:]  # clocks of cameras the data lacks
+    values = {n: float(v) for n, v in registry.unpack(phi).items() if n in acting and n not in unseen}
     # Jacobian with respect to the physical parameters: d phi / d theta per column.
     dphi = registry.slopes(phi, free)
     at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range
@@ -809,13 +892,14 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
         except np.linalg.LinAlgError:
             notes.append("the Gauss-Newton matrix is singular: no standard errors")
     n_imp = int(impacts)
+    unit = "m" if problem.cameras is None else "px"
     improvement = np.abs(np.diff(history[-4:])) if len(history) >= 4 else np.array([np.inf])
     converged = bool(np.all(np.isfinite(history[-1:])) and np.all(improvement <= 1e-6 * max(abs(history[-1]), 1.0))
                      and math.isfinite(rms))
     if not keep.any():
         notes.append("no sample lies after the fitted release time t0: nothing was fitted")
     elif not at_floor:
-        notes.append(f"rms residual {rms * 1e3:.2f} mm is above the noise level {noise * 1e3:.2f} mm read from the data: a local minimum, or physics the model lacks"
+        notes.append(f"rms residual {amount(rms, unit)} is above the noise level {amount(noise, unit)} read from the data: a local minimum, or physics the model lacks"
                      + (" (air drag)" if scene.air is None else " (or air coefficients it holds)"))
         delay = float(np.min(problem.t[np.asarray(problem.mask).any(axis=1)])) - values["t0"]
         if delay > LATE_START:
@@ -841,4 +925,5 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
         model_t=np.asarray(problem.t)[:n],
         model_position=np.asarray(pos)[:n],
         residuals=r_all.reshape(-1, 3)[:n],
+        unit=unit,
     )

@@ -8,9 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model._scene import Scene, load_scene
-from ..tracks._csv import read_tracks_csv
+from ..tracks._camera import read_camera
+from ..tracks._csv import Tracks, read_tracks_csv
+from ..tracks._exports import read_kinovea, read_tracker
+from ..tracks._image import read_image_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
 from ._fit import fit
+from ._image import fit_image
 from ._initial import initial_guess, split_flights
 from ._pooled import Clip, fit_clips
 
@@ -25,6 +29,48 @@ def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
     data = {b: (tracks.t[b], tracks.position[b]) for b in tracks.balls}
     result = fit(scene, data, progress=say, **options)
     result.source = os.fspath(tracks_path)
+    return result, data
+
+
+def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **options):
+    """Fit an image-track CSV (``t,ball,u,v[,camera]``) seen by the cameras of
+    ``camera_paths`` (camera files, in the order the ``camera`` column numbers them):
+    ``estim fit TRACKS --camera CAM ...``. Returns ``(result, tracks)``: the
+    :class:`FitResult` of :func:`estim.fitting._image.fit_image` and the
+    :class:`~estim.tracks._image.ImageTracks` read."""
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    cameras = [read_camera(p) for p in camera_paths]
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two camera files share the name {sorted({n for n in names if names.count(n) > 1})} "
+                         "(a camera is named by its file's stem): rename one")
+    tracks = read_image_tracks_csv(tracks_path, cameras, balls=[b.name for b in scene.balls])
+    result = fit_image(scene, tracks, progress=say, **options)
+    return result, tracks
+
+
+EXPORTS = {"tracker": read_tracker, "kinovea": read_kinovea}
+
+
+def fit_export(path, kind: str, scene: Scene | str, *, units: str, camera_path=None, say=None, reader=None,
+               **options):
+    """Fit a video tracker's export (``kind``: ``"tracker"`` or ``"kinovea"``;
+    ``estim.tracks._exports``): in metres as a tracks file, in pixels (``units="px"``)
+    through the camera of ``camera_path``. ``reader`` holds the reader's keywords (``ball``,
+    ``origin``, ``y_up``, ``angle_deg``, ``time_unit``). Returns ``(result, data)``: data
+    ``ball -> (t, position)`` for metres, the :class:`ImageTracks` for pixels."""
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    if kind not in EXPORTS:
+        raise ValueError(f"unknown export {kind!r}; estim reads {sorted(EXPORTS)}")
+    camera = None if camera_path is None else read_camera(camera_path)
+    tracks = EXPORTS[kind](path, units=units, camera=camera, **(reader or {}))
+    if isinstance(tracks, Tracks):
+        data = {b: (tracks.t[b], tracks.position[b]) for b in tracks.balls}
+        result = fit(scene, data, progress=say, **options)
+    else:
+        data = tracks
+        result = fit_image(scene, tracks, progress=say, **options)
+    result.source = os.fspath(path)
     return result, data
 
 

@@ -57,7 +57,7 @@ from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
 from ._loss import array_namespace
 
 __all__ = [
-    "AbstractTransform", "Exp", "Identity", "NAMES", "Parameter", "REGISTRY", "Sigmoid", "acting",
+    "AbstractTransform", "Exp", "Identity", "MAX_CAMERAS", "NAMES", "Parameter", "REGISTRY", "Sigmoid", "acting",
     "check_acting", "component", "default_free", "defaults", "describe", "expand", "index", "pack", "shown", "slopes",
     "starting_values", "to_params", "to_physical", "to_theta", "unpack", "value", "values_for",
     "with_values",
@@ -261,6 +261,10 @@ def _read_by_law(field: str) -> Callable[[Scene], bool]:
     return lambda scene: field in law_of(scene).reads()
 
 
+# The most cameras an image fit takes: camera 1 and the offsets of the others' clocks
+# (``camera_offset``; a fit of other data refuses them, estim.fitting._fit).
+MAX_CAMERAS = 4
+
 IN_AIR = "in a scene with air (<option density=...>)"
 UNDER_LAW = "under a contact law that reads it (the scene's estim:law)"
 
@@ -291,6 +295,10 @@ REGISTRY: tuple[Parameter, ...] = (
               acts_where=f"{IN_AIR} or under a contact law that couples spin (estim:law friction)",
               zero_where_idle=True, doc="angular velocity at release: the Magnus force in flight, the "
                                         "friction law's bounces"),
+    Parameter("camera_offset", field=None, components=tuple(f"dt_camera{k}" for k in range(2, MAX_CAMERAS + 1)),
+              unit="s", default=0.0,
+              doc="time added to the clock of camera k (2, 3, ...) to put its rows on camera 1's: image tracks "
+                  "seen by several cameras (estim.fitting._image)"),
     Parameter("pixel_scale", field=None, transform=Exp(), default=1.0,
               doc="factor on a pixel track's metres per pixel about its surface (1: the scale "
                   "read off the data; fitted per clip where that scale is biased, as by drag)"),

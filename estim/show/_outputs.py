@@ -9,21 +9,30 @@ import numpy as np
 from .._json import dump
 from ..fitting._fit import FitResult
 from ..fitting._pooled import PooledResult
+from ..tracks._image import ImageTracks
 from ._forest import plot_forest
+from ._image_plots import plot_image_fit, plot_path
 from ._plots import plot_fit, plot_from_above, plot_loss_history, plot_residuals
 
 
-def write_outputs(result: FitResult, data: dict, out_dir, extra: dict | None = None) -> dict:
-    """fit.json and the plots (fit.png, residuals.png, loss.png, and above.png, the view
-    from above, for tracks with y) into ``out_dir``."""
+def write_outputs(result: FitResult, data, out_dir, extra: dict | None = None) -> dict:
+    """fit.json and the plots into ``out_dir``. For tracks in metres (``data``: ``ball ->
+    (t, position)``): fit.png, residuals.png, loss.png, and above.png, the view from above,
+    for tracks with y. For a fit in pixels (``data``: the :class:`ImageTracks`):
+    pixels.png (what each camera saw, the fitted path over it), path.png (the path in 3-D)
+    and loss.png."""
     os.makedirs(out_dir, exist_ok=True)
     payload = result.to_json()
     payload.update(extra or {})
     with open(os.path.join(out_dir, "fit.json"), "w") as f:
         dump(payload, f, indent=2)
+    plot_loss_history(result, os.path.join(out_dir, "loss.png"))
+    if isinstance(data, ImageTracks):
+        plot_image_fit(data, result, os.path.join(out_dir, "pixels.png"))
+        plot_path(data, result, os.path.join(out_dir, "path.png"))
+        return payload
     plot_fit(data, result, os.path.join(out_dir, "fit.png"))
     plot_residuals(data, result, os.path.join(out_dir, "residuals.png"))
-    plot_loss_history(result, os.path.join(out_dir, "loss.png"))
     if any(np.isfinite(np.asarray(data[b][1], dtype=np.float64)[:, 1]).any() for b in result.balls):
         plot_from_above(data, result, os.path.join(out_dir, "above.png"))
     return payload

@@ -44,6 +44,7 @@ import numpy as np  # noqa: E402
 from ..fitting import _registry as registry  # noqa: E402
 from ..forward._simulate import simulate  # noqa: E402
 from ..model._scene import Scene, load_scene, scene_from_model  # noqa: E402
+from ..tracks._camera import Camera  # noqa: E402
 from ..tracks._csv import Tracks, read_tracks_csv  # noqa: E402
 from ._plots import COLOURS  # noqa: E402
 
@@ -52,7 +53,10 @@ __all__ = [
     "RenderError",
     "ReplayInfo",
     "ReplayMotion",
+    "CalibratedView",
     "SideCamera",
+    "calibrated_model",
+    "calibrated_view",
     "frame_times",
     "render_frames",
     "render_replay",
@@ -404,6 +408,78 @@ def side_camera(model, motion: ReplayMotion | None, width: int, height: int, *,
     return SideCamera(lookat, far, 90.0, elevation, fovy)
 
 
+@dataclass(frozen=True)
+class CalibratedView:
+    """The viewpoint of a calibrated camera (``estim.tracks._camera.Camera``), as a camera
+    ``estim_view`` that :func:`calibrated_model` adds to the scene's MJCF: placed at the
+    camera's centre, its axes OpenCV's turned half a turn about x (MuJoCo's camera looks
+    along its -z with y up), its vertical field of view ``2 atan(h / (2 fy))``. MuJoCo
+    renders a centred principal point, square pixels and no distortion: the picture is
+    shifted by the principal point's offset from the image centre (``shift``, pixels of the
+    full image), and a camera whose fx and fy differ by more than 1% or whose distortion is
+    not zero is refused (its picture would not be the video's)."""
+
+    camera: Camera
+    fovy: float
+    shift: tuple[float, float]
+
+    def to_mjv(self) -> mujoco.MjvCamera:
+        cam = mujoco.MjvCamera()
+        cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        cam.fixedcamid = -1  # set by render_frames from the model's camera "estim_view"
+        return cam
+
+
+VIEW_CAMERA = "estim_view"
+
+
+def calibrated_view(camera: Camera) -> CalibratedView:
+    """The :class:`CalibratedView` of a camera with a known image size.
+
+    Raises:
+        ValueError: no image size, fx and fy more than 1% apart, or distortion."""
+    if camera.size is None:
+        raise ValueError(f"camera {camera.name!r}: a replay from its viewpoint needs its image size "
+                         "(image_width, image_height or w, h in its file)")
+    K = np.asarray(camera.matrix)
+    if abs(K[0, 0] - K[1, 1]) > 0.01 * K[1, 1]:
+        raise ValueError(f"camera {camera.name!r}: fx = {K[0, 0]:g} and fy = {K[1, 1]:g} differ; MuJoCo renders "
+                         "square pixels only")
+    if np.any(np.asarray(camera.distortion) != 0):
+        raise ValueError(f"camera {camera.name!r}: MuJoCo renders no lens distortion; a replay from a distorted "
+                         "camera's viewpoint would not be its picture")
+    w, h = camera.size
+    fovy = math.degrees(2.0 * math.atan(h / (2.0 * K[1, 1])))
+    return CalibratedView(camera, fovy, (float(K[0, 2] - (w - 1) / 2), float(K[1, 2] - (h - 1) / 2)))
+
+
+def calibrated_model(scene_path, view: CalibratedView) -> mujoco.MjModel:
+    """The scene's MJCF with the camera ``estim_view`` of ``view`` added to its world."""
+    spec = mujoco.MjSpec.from_file(os.fspath(scene_path))
+    R = np.asarray(view.camera.rotation)
+    cam = spec.worldbody.add_camera(name=VIEW_CAMERA, pos=view.camera.centre.tolist(), fovy=view.fovy)
+    # MuJoCo's camera frame: x right, y up, looking along -z; OpenCV's rows of R are x
+    # right, y down, z forward, so MuJoCo's axes in the world are R[0], -R[1], -R[2].
+    frame = np.stack([R[0], -R[1], -R[2]], axis=1)
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, frame.reshape(-1))
+    cam.quat = quat
+    return spec.compile()
+
+
+def _shifted(img: np.ndarray, shift) -> np.ndarray:
+    """``img`` moved right by ``shift[0]`` and down by ``shift[1]`` pixels (rounded), the
+    uncovered border black: a principal point off the image centre."""
+    dx, dy = (int(round(v)) for v in shift)
+    if dx == 0 and dy == 0:
+        return img
+    out = np.zeros_like(img)
+    h, w = img.shape[:2]
+    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = img[max(-dy, 0):h - max(dy, 0),
+                                                                    max(-dx, 0):w - max(dx, 0)]
+    return out
+
+
 # --------------------------------------------------------------------------- rendering
 
 
@@ -492,14 +568,15 @@ def _add_sphere(scn: mujoco.MjvScene, pos, radius: float, rgba) -> None:
 
 
 def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int = 360,
-                  camera: SideCamera | None = None, ghosts: bool = True, trail: float = 0.3,
+                  camera: SideCamera | CalibratedView | None = None, ghosts: bool = True, trail: float = 0.3,
                   caption: bool = True, colours: Mapping | None = None) -> Iterator[np.ndarray]:
     """MuJoCo frames of a replay: ``(height [+ caption], width, 3)`` uint8 RGB arrays.
 
     Each frame places the fitted balls (free-joint ``qpos``, then ``mj_forward``) and adds
     the measured halos and trail dots to the visual scene. ``model`` is the scene's MJCF
     path or a ``mujoco.MjModel`` (not modified). ``camera`` defaults to
-    :func:`side_camera`. With ``caption``, a band under the picture gives the time and the
+    :func:`side_camera`; a :class:`CalibratedView` renders through the model's camera
+    ``estim_view`` (:func:`calibrated_model`). With ``caption``, a band under the picture gives the time and the
     fitted parameters; the picture itself is the first ``height`` rows either way.
     ``colours`` maps balls to colours (any matplotlib colour) in place of
     :func:`ball_colours`.
@@ -524,6 +601,13 @@ def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int 
             "or use the matplotlib side view (estim.render_sideview, `estim replay --view side`)"
         ) from err
     cam = camera.to_mjv()
+    shift = (0.0, 0.0)
+    if isinstance(camera, CalibratedView):
+        cam.fixedcamid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, VIEW_CAMERA)
+        if cam.fixedcamid < 0:
+            raise ValueError(f"a calibrated view needs the model's camera {VIEW_CAMERA!r} (calibrated_model)")
+        scale = width / camera.camera.size[0]
+        shift = (camera.shift[0] * scale, camera.shift[1] * scale)
     band = _CaptionBand(motion, colours, width) if caption else None
     try:
         for k, t in enumerate(motion.t):
@@ -546,7 +630,7 @@ def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int 
                     m = motion.measured[b][k]
                     if np.all(np.isfinite(m)):
                         _add_sphere(scn, m, GHOST_SCALE * r, (*c, GHOST_ALPHA))
-            img = renderer.render()
+            img = _shifted(renderer.render(), shift)
             yield band.under(img, k) if band is not None else img.copy()
     finally:
         renderer.close()
@@ -724,7 +808,7 @@ class ReplayInfo:
 
 
 def render_replay(scene, fit, tracks, out, *, fps: float = 25.0, width: int = 640,
-                  height: int = 360, camera: SideCamera | None = None,
+                  height: int = 360, camera: SideCamera | Camera | None = None,
                   trail: float = 0.3) -> ReplayInfo:
     """Render the fitted model against the measured tracks with MuJoCo and write ``out``
     (``.gif``, or ``.mp4`` with ffmpeg on PATH).
@@ -737,7 +821,10 @@ def render_replay(scene, fit, tracks, out, *, fps: float = 25.0, width: int = 64
         fps: frames per second: ``floor(span * fps) + 1`` frames over the data's span.
         width: width of the picture in pixels.
         height: height of the picture in pixels (a caption band is added below it).
-        camera: default :func:`side_camera`.
+        camera: default :func:`side_camera`; an :class:`estim.Camera` (calibrated, with its
+            image size) renders from its viewpoint (:func:`calibrated_view`; ``scene`` must
+            then be the MJCF path), ``width`` wide and as high as its image's aspect says
+            (``height`` is not used), so the fitted ball lands where the video saw it.
         trail: seconds of recent measured samples shown as dots (0: none).
 
     Raises:
@@ -747,6 +834,12 @@ def render_replay(scene, fit, tracks, out, *, fps: float = 25.0, width: int = 64
     """
     check_output(out, fps)
     model = _as_model(scene)
+    if isinstance(camera, Camera):
+        camera = calibrated_view(camera)
+        if not isinstance(scene, (str, os.PathLike)):
+            raise ValueError("a replay from a calibrated camera's viewpoint needs the scene's MJCF path")
+        model = calibrated_model(scene, camera)
+        height = max(1, round(width * camera.camera.size[1] / camera.camera.size[0]))
     motion = replay_motion(_estim_scene(scene, model), fit, tracks, fps=fps)
     frames = render_frames(model, motion, width=width, height=height, camera=camera, trail=trail)
     n = write_video(frames, out, fps, colours=list(ball_colours(model, motion.balls).values()))

@@ -1,0 +1,226 @@
+"""Fits in pixels: balls seen by one or more calibrated cameras.
+
+:func:`fit_image` fits image tracks (``estim.tracks._image``): the model's 3-D path, seen by
+the camera of each row (``estim.tracks._camera``: OpenCV's projection), against the
+pixels, with the robust loss of every fit (residuals in pixels, noise read from the pixels'
+third differences). What it estimates is 3-D, in the scene's world frame: the release
+state, the law's coefficients, the spin where it acts, and with several cameras the offset
+of each camera's clock from the first's (``dt_camera2``, ...: a row at time t of camera k
+is the model at ``t + dt_camerak``).
+
+1. **Start.** One camera gives rays, not points; the path comes through the physics
+   (``estim.tracks._reconstruct``): flights under gravity of known size, meeting at the
+   bounces, the centre one radius above the surface at each bounce. With several cameras
+   the same least squares takes every camera's rays: a triangulation through the physics.
+   The bounces go on the scene's surfaces, bounded ones (a table that holds the bounce
+   point) before planes (``estim.tracks._reconstruct.reconstructions``); the ``STARTS``
+   best such paths are fitted side by side in one batch (the best repeated where there are
+   fewer, so that one compiled program serves every shot of a length), and the fit that
+   explains the pixels best (the least robust loss) is kept. The starting values come from
+   the path's flights (:func:`start_values`: the release state, e and mu from the velocities
+   at the first bounce, in air the spin from the first flight's curvature).
+2. **Fit.** Every fit's machinery (``estim.fitting._fit``) with the residuals in pixels.
+   Every key runs every restart (``_fit_all(explore=True)``: e from a grid over its
+   range), at its noise floor or not: a few frames of pixels read that floor poorly.
+3. **Depth.** Depth (along a camera's axis) is the direction the pixels fix worst. From the
+   fit's covariance, each ball's report gives the standard error of the release point
+   along the first camera's axis and across it (``BallFit.depth``), and a note where the
+   depth is not fixed: a release point whose standard error along the axis exceeds
+   ``DEPTH_LIMIT`` or that the data cannot determine at all.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from ..model._air import air_acceleration, spin_for_lift
+from ..model._params import DRAG_COEFFICIENT
+from ..model._scene import Scene
+from ..tracks._camera import CameraArrays
+from ..tracks._image import ImageTracks
+from ..tracks._reconstruct import reconstructions
+from . import _registry as registry
+from ._fit import FitResult, ImageRows, _fit_all
+from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
+from ._loss import robust_loss
+
+__all__ = ["DEPTH_LIMIT", "default_image_free", "fit_image"]
+
+# A release point known to worse than this along the camera's axis (m) is "not fixed".
+DEPTH_LIMIT = 0.05
+# The largest spin a start takes from a flight's curvature (rad/s): beyond, noise.
+SPIN_START = 400.0
+# Starts per ball: the start paths with the bounces on different surfaces
+# (estim.tracks._reconstruct.reconstructions), fitted side by side; the best is kept.
+STARTS = 2
+
+
+def default_image_free(scene: Scene, n_cameras: int) -> tuple[str, ...]:
+    """What an image fit estimates by default: the law's coefficients that act in the
+    scene, the release position and velocity (3-vectors: a camera sees the ball in 3-D),
+    the spin where it acts, and the clock offsets of cameras 2, 3, ... ."""
+    base = registry.default_free(scene, True)
+    out = list(base)
+    for n in registry.expand(("position", "velocity")):
+        if n not in out:
+            out.append(n)
+    out += list(registry.component("dt_camera2").components[:n_cameras - 1])
+    return tuple(out)
+
+
+def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss: str = "cauchy", steps: int = 30,
+              restarts: int = 5, max_segments: int = 48,
+              progress: Callable[[str], None] | None = None) -> FitResult:
+    """Fit every ball of image tracks (module docstring).
+
+    Args:
+        scene: the scene, in whose world frame the cameras are calibrated.
+        tracks: the pixels and their cameras (``estim.read_image_tracks_csv``).
+        free: the parameters to fit (registry names); default :func:`default_image_free`.
+        fixed: per ball, values to hold (or start from); as :func:`estim.fit`.
+        loss, steps, restarts, max_segments, progress: as :func:`estim.fit`.
+
+    Returns:
+        A :class:`estim.FitResult` whose balls' residuals are in pixels (``unit == "px"``:
+        ``rms_m`` and ``noise_m`` hold pixels) with ``model_position`` the fitted 3-D path
+        at the rows' times and ``depth`` the depth report.
+
+    Raises:
+        ValueError: a ball the scene lacks, too few rows per flight, more than
+            ``registry.MAX_CAMERAS`` cameras, and every refusal of :func:`estim.fit`.
+    """
+    if not isinstance(tracks, ImageTracks):
+        raise TypeError(f"tracks must be estim.ImageTracks (estim.read_image_tracks_csv), got {type(tracks).__name__}")
+    if len(tracks.cameras) > registry.MAX_CAMERAS:
+        raise ValueError(f"{len(tracks.cameras)} cameras: an image fit takes at most {registry.MAX_CAMERAS}")
+    say = progress or (lambda msg: None)
+    data, images, ball_of, starts = {}, {}, {}, {}
+    arrays = CameraArrays.of(tracks.cameras)
+    for b in tracks.balls:
+        scene.ball(b)  # KeyError naming the scene's balls
+        try:
+            recs = reconstructions(tracks, b, scene, alternatives=STARTS)
+        except ValueError as err:
+            raise ValueError(f"ball {b!r}: {err}") from None
+        ok = tracks.valid(b)
+        t, first = np.unique(tracks.t[b][ok], return_index=True)
+        # Always STARTS keys per ball (the best start repeated where there are fewer), so
+        # that every shot of a given length runs the same compiled program.
+        for j in range(STARTS):
+            key = _key(b, j)
+            rec = recs[min(j, len(recs) - 1)]
+            data[key] = (t, rec.position[ok][first])
+            starts[key] = start_values(rec, scene, b)
+            images[key] = ImageRows(t=tracks.t[b], uv=tracks.uv[b], view=tracks.view[b], cameras=arrays,
+                                    noise=tracks.noise(b), initial=_initial(rec, starts[key]))
+            ball_of[key] = b
+        say(f"{b}: {len(recs)} start(s) in 3-D from {len(tracks.cameras)} camera(s): {len(recs[0].bounces)} "
+            f"bounce(s), rays missed by {recs[0].ray_rms * 1e3:.2f} mrad rms")
+    free = registry.expand(default_image_free(scene, len(tracks.cameras)) if free is None else free)
+    # The path's own starts for the fitted parameters (fixed values double as starts);
+    # what the caller holds or gives wins.
+    given = fixed or {}
+    fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
+    options = dict(loss=loss, steps=steps, max_segments=max_segments, progress=progress, balls=ball_of,
+                   images=images)
+    every, _ = _fit_all(scene, data, free=free, fixed=fixed, restarts=restarts, explore=True, **options)
+    result = FitResult({b: every.balls[_best(every, b)] for b in tracks.balls})
+    for b, bf in result.balls.items():
+        bf.ball = b
+    for bf in result.balls.values():
+        bf.depth = _depth_report(bf, tracks.cameras[0])
+        if not bf.depth["fixed"]:
+            bf.notes.append(bf.depth["note"])
+    result.source = tracks.source
+    return result
+
+
+def start_values(rec, scene: Scene, ball: str) -> dict[str, float]:
+    """Starting values read off a start path (``estim.tracks._reconstruct``): the release
+    state at t = 0 from its first flight; at its first bounce, e from the normal velocities
+    (``-v_z after / v_z before``), the friction law's mu from the tangential change
+    (``|dv_t| / ((1 + e) |v_z before|)``: a sliding bounce's, a lower bound where the ball
+    grips); in air the spin from the first flight's own acceleration less the drag, the
+    Magnus part inverted (``estim.model._air.spin_for_lift``). Clipped inside the ranges."""
+    out = dict(zip(("x0", "y0", "z0"), map(float, rec.flights[0, 0] + _back(rec, 0.0)), strict=True))
+    out.update(zip(("vx0", "vy0", "vz0"), map(float, rec.velocity(0.0, 0)), strict=True))
+    if rec.bounces:
+        b = rec.bounces[0]
+        before, after = rec.velocity(b, 0), rec.velocity(b, 1)
+        if before[2] < 0:
+            e = float(np.clip(-after[2] / before[2], 0.05, 0.98))
+            out["e"] = e
+            mu = float(np.linalg.norm((after - before)[:2]) / ((1.0 + e) * -before[2]))
+            out["mu"] = float(np.clip(mu, 0.05, 0.9))
+    if scene.air is not None and rec.flights.shape[1] == 3:
+        spec = scene.ball(ball)
+        end = rec.bounces[0] if rec.bounces else float(rec.t.max())
+        middle = 0.5 * (rec.refs[0] + end)
+        v = rec.velocity(middle, 0)
+        drag = np.asarray(air_acceleration(scene.air, spec.radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
+        spin = spin_for_lift(scene.air, spec.radius, spec.mass, v, rec.flights[0, 2] - drag)
+        out.update(zip(("spin_x", "spin_y", "spin_z"), map(float, np.clip(spin, -SPIN_START, SPIN_START)),
+                       strict=True))
+    return out
+
+
+def _initial(rec, values: dict[str, float]) -> Initial:
+    """The fit's ``Initial`` of a start path: its starting values and bounces."""
+    v = np.array([values["vx0"], values["vy0"], 0.0])
+    direction = tuple(v / np.linalg.norm(v)) if np.linalg.norm(v) > 0 else (1.0, 0.0, 0.0)
+    return Initial(e=values.get("e", E_DEFAULT), mu_t=MU_DEFAULT, vx0=values["vx0"], vz0=values["vz0"],
+                   x0=values["x0"], z0=values["z0"], bounces=tuple(rec.bounces), y0=values["y0"],
+                   vy0=values["vy0"], direction=direction, mu=values.get("mu", FRICTION_DEFAULT),
+                   spin=tuple(values.get(f"spin_{c}") for c in "xyz"))
+
+
+def _back(rec, t: float) -> np.ndarray:
+    """The first flight's position at time ``t`` (m), extrapolated back from its reference."""
+    dt = t - rec.refs[0]
+    return rec.velocity(rec.refs[0], 0) * dt + 0.5 * rec.acceleration(0) * dt**2
+
+
+def _key(ball: str, j: int) -> str:
+    return ball if j == 0 else f"{ball}#start{j + 1}"
+
+
+def _best(result: FitResult, ball: str) -> str:
+    """The key of ``ball``'s start whose fit explains its pixels best: the least robust
+    loss of its residuals at the pixels' noise level (the same scale for every start)."""
+
+    def loss(key):
+        bf = result.balls[key]
+        u = bf.residuals / bf.noise_m
+        return float(np.sum(robust_loss(u, "cauchy"))) if np.all(np.isfinite(u)) else np.inf
+
+    return min((_key(ball, j) for j in range(STARTS)), key=loss)
+
+
+def _depth_report(bf, camera) -> dict:
+    """The release point's standard errors along the camera's axis and across it (m)."""
+    names = ("x0", "y0", "z0")
+    axis = np.asarray(camera.rotation)[2]
+    out = {"camera": camera.name, "axis": axis.tolist()}
+    if not all(n in bf.names for n in names):
+        out.update(along_axis_m=None, across_axis_m=None, fixed=True, note="")
+        return out
+    k = [bf.names.index(n) for n in names]
+    sd = np.array([bf.stderr[n] for n in names])
+    if not np.all(np.isfinite(sd)):
+        out.update(along_axis_m=None, across_axis_m=None, fixed=False,
+                   note=f"the depth of the path along camera {camera.name!r}'s axis is not fixed by this data: "
+                        "the release point cannot be determined (see the notes above); add a camera, or hold "
+                        "the release point fixed")
+        return out
+    cov = bf.correlation[np.ix_(k, k)] * np.outer(sd, sd)
+    along = float(math.sqrt(max(axis @ cov @ axis, 0.0)))
+    across = float(math.sqrt(max(np.trace(cov) - along**2, 0.0) / 2.0))
+    fixed = along <= DEPTH_LIMIT
+    note = "" if fixed else (f"the depth of the release point along camera {camera.name!r}'s axis is known only to "
+                             f"{along * 100:.1f} cm (across it to {across * 100:.1f} cm): the pixels leave the "
+                             "depth open; add a camera, or more bounces in view")
+    out.update(along_axis_m=along, across_axis_m=across, fixed=fixed, note=note)
+    return out

@@ -1,0 +1,441 @@
+"""A 3-D path from pixels, through the physics: the start of a fit in pixels.
+
+One camera gives a ray per sample, not a point: depth is what the pixels leave open. The
+physics closes it (the issue's "one camera" case). Between two bounces a ball in a vacuum
+flies on the parabola ``X(t) = p + v (t - tau) + g (t - tau)^2 / 2`` with gravity ``g``
+known in direction *and size*; a sample at time ``t_i`` seen along the unit ray ``d_i``
+from the camera centre ``C`` puts ``X(t_i)`` on that ray,
+
+    (I - d_i d_i^T) (p + v dt_i) = (I - d_i d_i^T) (C - g dt_i^2 / 2),    dt_i = t_i - tau,
+
+which is *linear* in the flight's ``(p, v)``. Without the gravity term the equations are
+homogeneous (a path twice as far and twice as fast looks the same); gravity's known size
+fixes the scale, from a single camera. Flights meet at the bounces (their positions
+agree there), and at a bounce on a known surface the centre is one radius above it: both
+are linear too. Every flight of every camera goes into one linear least-squares problem
+(:func:`reconstruct`), solved twice: first with gravity and the meetings alone, then with
+the centre at each bounce on the scene's surface beneath it. Rows are weighted by the
+inverse distance of the point from the camera, so that each measures an angle (a pixel
+divided by the focal length), and rows far off the solution (beyond 5 robust standard
+deviations) are set aside as outliers. With several cameras their rays meet in the same
+problem: a triangulation through the physics, which needs no common sample times.
+
+In a scene with air the flights are not parabolas: drag and the Magnus force (of a spin
+the start does not know) add an acceleration of the order of g to a fast light ball. Each
+flight then gets its own constant acceleration ``g + a_k``, still linear,
+
+    X(t) = p + v dt + (g + a_k) dt^2 / 2,
+
+with a Gaussian prior ``a_k ~ N(0, AIR_PRIOR^2)`` per component (a row ``a_k / AIR_PRIOR``
+weighted like the flight's samples together): without it gravity's size would no longer fix the
+scale, and the bounce on a surface of known height would be the only thing that does.
+
+Bounces are read from the pixels themselves (:func:`estim.tracks._flights.flight_contacts`
+on the image coordinate along which the track bounces most clearly). The result is a
+start, not an estimate: drag, spin and the cameras' clock offsets are left to the fit.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from ..model._air import air_acceleration
+from ..model._params import DRAG_COEFFICIENT
+from ..model._scene import Scene
+from ._flights import flight_contacts
+from ._image import ImageTracks
+
+__all__ = ["Reconstruction", "reconstruct", "reconstructions", "surface_height"]
+
+# Weight of a meeting of two flights and of a bounce on a surface, against one sample's
+# ray (both in units of angle: metres over the distance from the camera).
+_TIE = 30.0
+_CUT = 5.0
+# The prior's standard deviation of a flight's air acceleration about the drag at the
+# default coefficient (m/s^2): the Magnus force of a table-tennis ball at 6 m/s and 100
+# rad/s, and the drag coefficient's spread, are about this size.
+AIR_PRIOR = 5.0
+# A box top narrower than this many ball radii (a net, a wall's top) is no bounce surface
+# for the start.
+NARROW = 4.0
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """A piecewise-parabolic 3-D path through the pixels of one ball.
+
+    Attributes:
+        t: ``(n,)`` the track's rows' times.
+        position: ``(n, 3)`` the path at those times (m).
+        bounces: times of the bounces read from the pixels (s).
+        bounce_points: ``(len(bounces), 3)`` the path at the bounces (m).
+        depth: ``(n,)`` distance of each row's point along its camera's axis (m).
+        inlier: ``(n,)`` rows that the least squares kept.
+        ray_rms: rms distance of the kept rows' points from their rays, over their depth
+            (radians: a pixel over the focal length).
+        flights: ``(len(bounces) + 1, k, 3)`` each flight's position and velocity at its
+            reference time (the first row's time, then the bounces), and in air (k = 3)
+            its own acceleration besides gravity.
+        refs: ``(len(bounces) + 1,)`` the flights' reference times.
+        gravity: the gravity vector (m/s^2).
+    """
+
+    t: np.ndarray
+    position: np.ndarray
+    bounces: tuple[float, ...]
+    bounce_points: np.ndarray
+    depth: np.ndarray
+    inlier: np.ndarray
+    ray_rms: float
+    flights: np.ndarray
+    refs: np.ndarray
+    gravity: np.ndarray
+
+    def velocity(self, t: float, flight: int | None = None) -> np.ndarray:
+        """The path's velocity at time ``t`` (m/s), on ``flight`` (default: the flight
+        that holds t; at a bounce, the flight before it is ``flight = k``, after it ``k + 1``)."""
+        k = int(np.searchsorted(np.asarray(self.bounces), t, side="right")) if flight is None else flight
+        u = self.flights[k]
+        return u[1] + self.acceleration(k) * (t - self.refs[k])
+
+    def acceleration(self, flight: int) -> np.ndarray:
+        """The acceleration of ``flight`` (gravity, and in air its own besides)."""
+        u = self.flights[flight]
+        return self.gravity + (u[2] if u.shape[0] == 3 else 0.0)
+
+
+def surface_height(scene: Scene, x: float, y: float, z: float, radius: float) -> float | None:
+    """The height of the scene's upward-facing surface under ``(x, y)`` nearest to the
+    height ``z - radius`` (the top of a box whose outline, grown by the radius, holds
+    ``(x, y)``, or a plane facing up); ``None`` where there is none."""
+    tops = []
+    for c, h in zip(np.asarray(scene.box_centre), np.asarray(scene.box_half), strict=True):
+        if abs(x - c[0]) <= h[0] + radius and abs(y - c[1]) <= h[1] + radius:
+            tops.append(c[2] + h[2])
+    for n, o in zip(np.asarray(scene.plane_normal), np.asarray(scene.plane_offset), strict=True):
+        if n[2] > 0.5:
+            tops.append(o)
+    if not tops:
+        return None
+    return float(min(tops, key=lambda top: abs(top - (z - radius))))
+
+
+def _bounce_times(tracks: ImageTracks, ball: str) -> tuple[float, ...]:
+    """Bounce times from the camera with the most rows, on the image coordinate (and sign)
+    with the most resolved bounces."""
+    view, t, uv = tracks.view[ball], tracks.t[ball], tracks.uv[ball]
+    ok = tracks.valid(ball)
+    best = max(range(len(tracks.cameras)), key=lambda k: int(np.sum(ok & (view == k))))
+    rows = ok & (view == best)
+    found: tuple[float, ...] = ()
+    for axis, sign in ((1, 1.0), (1, -1.0), (0, 1.0), (0, -1.0)):
+        bounces, _, contacts = flight_contacts(t[rows], sign * uv[rows, axis])
+        times = {i: float(t[rows][i]) for i in bounces}
+        times.update({i: float(tc) for i, tc, *_ in contacts})
+        if len(times) > len(found):
+            found = tuple(times[i] for i in sorted(times))
+    return found
+
+
+def reconstruct(tracks: ImageTracks, ball: str, scene: Scene, *, radius: float | None = None,
+                bounces: tuple[float, ...] | None = None) -> Reconstruction:
+    """The most likely 3-D path of ``ball`` through its pixels: the first of
+    :func:`reconstructions`."""
+    return reconstructions(tracks, ball, scene, radius=radius, bounces=bounces)[0]
+
+
+def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: float | None = None,
+                    bounces: tuple[float, ...] | None = None, alternatives: int = 1) -> list[Reconstruction]:
+    """The 3-D path of ``ball`` through its pixels (module docstring).
+
+    Bounces come from the pixels' cusps; where the rays still miss the path by more than
+    twice the pixels' noise (a bounce seen head-on makes no clear cusp), the bounce that
+    lowers the misfit most is added, at the sample time where it does, while it lowers the
+    misfit by a third or more. Each bounce time is then refined between its neighbouring
+    samples (golden-section search on the misfit).
+
+    Each bounce is put on each of the scene's upward surfaces in turn (:func:`_on_surfaces`);
+    the paths whose bounce points lie on their surfaces come first, and among those the
+    ones with the fewest bounces on unbounded planes (a bounce point that falls inside a
+    table's outline is evidence for the table, while a plane, such as the floor far behind
+    it on the same ray, holds any point), the least misfit first. ``alternatives`` returns
+    up to that many paths of that first kind, for a fit to choose between with the whole
+    physics.
+
+    Args:
+        tracks: the pixels and the cameras that saw them.
+        ball: which ball.
+        scene: gravity and the surfaces the ball bounces on.
+        radius: the ball's radius (default: the scene's ball of that name).
+        bounces: the bounce times (default: read from the pixels as above).
+        alternatives: how many paths to return at most (different surfaces of the bounces).
+
+    Raises:
+        ValueError: too few rows to fix the path (six unknowns per flight).
+    """
+    radius = scene.ball(ball).radius if radius is None else float(radius)
+    drag = None
+    if scene.air is not None:
+        spec = scene.ball(ball)
+
+        def drag(v):
+            return np.asarray(air_acceleration(scene.air, radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
+
+    rays = _Rays(tracks, ball, np.array([0.0, 0.0, -float(scene.gravity)]), drag)
+    surfaces = _surfaces(scene, radius)
+    if bounces is None:
+        bounces = _find_bounces(rays, _bounce_times(tracks, ball), surfaces)
+    bounces = tuple(sorted(bounces))
+    t_all, view = tracks.t[ball], tracks.view[ball]
+    out = []
+    for x, keep, miss, _, _ in _on_surfaces(rays, bounces, surfaces, ranked=alternatives):
+        position = rays.evaluate(x, bounces, t_all)
+        bounce_points = np.array([rays.at(x, bounces, b, k + 1) for k, b in enumerate(bounces)]).reshape(-1, 3)
+        axis_depth = np.array([tracks.cameras[k].depth(p) for k, p in zip(view, position, strict=True)])
+        inlier = np.zeros(t_all.size, bool)
+        inlier[rays.rows[keep]] = True
+        out.append(Reconstruction(t=t_all.copy(), position=position, bounces=bounces, bounce_points=bounce_points,
+                                  depth=axis_depth, inlier=inlier, ray_rms=float(np.sqrt(np.mean(miss[keep] ** 2))),
+                                  flights=x.reshape(len(bounces) + 1, -1, 3), refs=rays.refs(bounces),
+                                  gravity=rays.g))
+    return out
+
+
+class _Surface(NamedTuple):
+    """An upward-facing surface a bounce can be on: the ball centre's height there, and
+    the outline ``(x_lo, x_hi, y_lo, y_hi)`` that holds the centre (None: a plane)."""
+
+    height: float
+    outline: tuple[float, float, float, float] | None
+
+    def holds(self, point) -> bool:
+        if self.outline is None:
+            return True
+        x_lo, x_hi, y_lo, y_hi = self.outline
+        return bool(x_lo <= point[0] <= x_hi and y_lo <= point[1] <= y_hi)
+
+
+def _surfaces(scene: Scene, radius: float) -> list[_Surface]:
+    """The scene's upward faces: box tops (outlines grown by the radius) at least
+    ``NARROW`` radii wide, and planes."""
+    out = [_Surface(float(c[2] + h[2] + radius), (c[0] - h[0] - radius, c[0] + h[0] + radius,
+                                                  c[1] - h[1] - radius, c[1] + h[1] + radius))
+           for c, h in zip(np.asarray(scene.box_centre), np.asarray(scene.box_half), strict=True)
+           if 2 * min(h[0], h[1]) >= NARROW * radius]
+    out += [_Surface(float(o + radius), None)
+            for n, o in zip(np.asarray(scene.plane_normal), np.asarray(scene.plane_offset), strict=True) if n[2] > 0.5]
+    return out
+
+
+def _on_surfaces(rays, bounces, surfaces, chosen=None, ranked: int = 0):
+    """The path with each bounce on a surface: every assignment of surfaces to the bounces
+    (up to three bounces; beyond, one bounce at a time), the centre one radius above its
+    surface at the bounce. The assignment whose bounce points lie on their surfaces, with
+    the fewest on unbounded planes, and whose rays miss least wins (:meth:`_Rays.score`). Returns ``(x, keep, miss, depth,
+    surfaces chosen)``; with ``ranked``, a list of up to that many, best first."""
+    if not bounces or not surfaces:
+        return [(*rays.fit(bounces), ())] if ranked else (*rays.fit(bounces), ())
+    if chosen is not None:
+        options = [[c] for c in chosen]
+    elif len(bounces) <= 3:
+        options = [surfaces] * len(bounces)
+    else:
+        options = [[min(surfaces, key=lambda s: s.height)]] * len(bounces)
+    found = []
+    for combo in itertools.product(*options):
+        try:
+            x, keep, miss, depth = rays.fit(bounces, heights=[s.height for s in combo])
+        except ValueError:
+            continue
+        points = [rays.at(x, bounces, b, k + 1) for k, b in enumerate(bounces)]
+        held = all(s.holds(p) for s, p in zip(combo, points, strict=True))
+        # A bounce point inside a bounded surface's outline is evidence for it (a wrong
+        # depth puts it there by chance only); a plane holds any point.
+        key = (not held, sum(s.outline is None for s in combo), rays.score(miss, x, bounces))
+        found.append((key, (x, keep, miss, depth, combo)))
+    if not found:
+        raise ValueError("a flight with fewer than 3 tracked rows: too few to fix its 3-D path from pixels")
+    found.sort(key=lambda f: f[0])
+    if ranked:
+        return [f[1] for f in found if f[0][:2] == found[0][0][:2]][:ranked]
+    return found[0][1]
+
+
+class _Rays:
+    """The rays of one ball's valid rows, and least-squares paths through them."""
+
+    def __init__(self, tracks: ImageTracks, ball: str, g: np.ndarray, drag):
+        self.g = g
+        self.drag = drag  # v -> the air's drag acceleration at the default coefficient; None: a vacuum
+        ok = tracks.valid(ball)
+        self.rows = np.flatnonzero(ok)
+        view = tracks.view[ball][self.rows]
+        uv = tracks.uv[ball][self.rows]
+        self.t = tracks.t[ball][self.rows]
+        self.centres = np.stack([c.centre for c in tracks.cameras])[view]
+        self.dirs = np.zeros((self.rows.size, 3))
+        for k, cam in enumerate(tracks.cameras):
+            self.dirs[view == k] = cam.rays(uv[view == k])
+        # The rays' noise as an angle (rad): the pixels' noise over the focal length.
+        focal = np.median([float(np.asarray(c.matrix)[0, 0]) for c in tracks.cameras])
+        self.noise = tracks.noise(ball) / focal
+
+    def refs(self, bounces):
+        """Each flight's reference time: the first sample, then the bounces."""
+        return np.concatenate([[self.t.min()], bounces])
+
+    def evaluate(self, x, bounces, t):
+        flight = np.searchsorted(np.asarray(bounces), t, side="right")
+        return self.at(x, bounces, t, flight)
+
+    def at(self, x, bounces, t, flight):
+        unknowns = x.reshape(len(bounces) + 1, -1, 3)[flight]
+        dt = np.asarray(t - self.refs(bounces)[flight])[..., None]
+        a = self.g + (unknowns[..., 2, :] if unknowns.shape[-2] == 3 else 0.0)
+        return unknowns[..., 0, :] + unknowns[..., 1, :] * dt + 0.5 * a * dt**2
+
+    def fit(self, bounces, *, heights=None, keep=None, depth=None):
+        """``(x, keep, miss, depth)``: the flights' ``(p, v)``, the rows kept (within 5 robust
+        standard deviations), each row's miss (angle) and its distance from its camera,
+        after a few rounds of reweighting."""
+        keep = np.ones(self.rows.size, bool) if keep is None else keep
+        depth = np.ones(self.rows.size) if depth is None else depth
+        flight = np.searchsorted(np.asarray(bounces), self.t, side="right")
+        for n in np.bincount(flight, minlength=len(bounces) + 1):
+            if n < 3:
+                raise ValueError("a flight with fewer than 3 tracked rows: too few to fix its 3-D path from pixels")
+        # In air, the flights' own accelerations only where a bounce on a surface holds
+        # the scale: without one, their freedom would let the path shrink onto the camera.
+        air = self.drag is not None and heights is not None and any(h is not None for h in heights)
+        x = None
+        for _ in range(4 if air else 3):
+            x = _solve(self, bounces, flight, keep, depth, heights, air, x)
+            pos = self.at(x, bounces, self.t, flight)
+            v = pos - self.centres
+            depth = np.maximum(np.linalg.norm(v, axis=1), 1e-3)
+            miss = np.linalg.norm(v - np.sum(v * self.dirs, axis=1)[:, None] * self.dirs, axis=1) / depth
+            scale = 1.4826 * np.median(miss[keep]) + 1e-12
+            keep = miss <= _CUT * max(scale, self.noise if np.isfinite(self.noise) else 0.0)
+        return x, keep, miss, depth
+
+    def score(self, miss, x=None, bounces=()) -> float:
+        """The misfit of a path: the mean square of the rays' misses, each capped at 5 times
+        the noise (an outlier counts, but only so much), plus, in air, the prior's cost of
+        the flights' accelerations (:func:`_solve`) per row; its square root (rad)."""
+        noise = self.noise if np.isfinite(self.noise) else float(np.median(miss))
+        cost = np.sum(np.minimum(miss, _CUT * noise) ** 2)
+        if x is not None and x.size == 9 * (len(bounces) + 1):
+            refs, ends = self.refs(bounces), np.concatenate([bounces, [self.t.max()]])
+            flight = np.searchsorted(np.asarray(bounces), self.t, side="right")
+            for f, u in enumerate(x.reshape(-1, 3, 3)):
+                off = u[2] - self.drag(u[1] + 0.5 * (self.g + u[2]) * (ends[f] - refs[f]))
+                cost += np.sum(flight == f) * noise**2 * np.sum(off**2) / AIR_PRIOR**2
+        return float(np.sqrt(cost / miss.size))
+
+
+def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
+    """Bounces added where the misfit asks for them, then refined (:func:`reconstruct`).
+    Each candidate set of bounces is scored with its bounces on the scene's surfaces
+    (:func:`_on_surfaces`): a path that merely bends (drag, spin) is no bounce."""
+
+    def score(candidate, chosen=None):
+        try:
+            x, _, miss, _, _ = _on_surfaces(rays, tuple(candidate), surfaces, chosen)
+        except ValueError:
+            return np.inf
+        return rays.score(miss, x, tuple(candidate))
+
+    bounces = list(bounces)
+    current = score(bounces)
+    times = np.unique(rays.t)
+    while not current <= 2.0 * rays.noise:
+        mids = 0.5 * (times[1:] + times[:-1])
+        trial = [(score(sorted(bounces + [b])), b) for b in mids if b not in bounces]
+        if not trial:
+            break
+        best, b = min(trial)
+        if not best < current / 1.5:
+            break
+        bounces, current = sorted(bounces + [b]), best
+    if bounces:
+        chosen = _on_surfaces(rays, tuple(bounces), surfaces)[4] or None
+        for k in range(len(bounces)):
+            lo = times[max(np.searchsorted(times, bounces[k], side="left") - 1, 0)]
+            hi = times[min(np.searchsorted(times, bounces[k], side="right"), times.size - 1)]
+            if k > 0:
+                lo = max(lo, bounces[k - 1])
+            if k + 1 < len(bounces):
+                hi = min(hi, bounces[k + 1])
+            bounces[k] = _golden(lambda b, k=k: score(bounces[:k] + [b] + bounces[k + 1:], chosen), lo, hi)
+    return tuple(bounces)
+
+
+def _golden(f, lo, hi, iterations: int = 30) -> float:
+    """The minimum of ``f`` on ``[lo, hi]`` by golden-section search."""
+    r = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = lo + (1 - r) * (hi - lo), lo + r * (hi - lo)
+    fa, fb = f(a), f(b)
+    for _ in range(iterations):
+        if fa <= fb:
+            hi, b, fb = b, a, fa
+            a = lo + (1 - r) * (hi - lo)
+            fa = f(a)
+        else:
+            lo, a, fa = a, b, fb
+            b = lo + r * (hi - lo)
+            fb = f(b)
+    return float(0.5 * (lo + hi))
+
+
+def _solve(rays: _Rays, bounces, flight, keep, depth, heights, air, previous):
+    """The flights' unknowns by weighted linear least squares (module docstring); in
+    ``air`` the prior on each flight's acceleration is centred on the drag at the
+    ``previous`` solution's mean velocity of that flight."""
+    refs = rays.refs(bounces)
+    m = 9 if air else 6
+    n = m * len(refs)
+    rows = np.flatnonzero(keep)
+    d = rays.dirs[rows]
+    P = (np.eye(3)[None] - d[:, :, None] * d[:, None, :]) / depth[rows, None, None]
+    dt = rays.t[rows] - refs[flight[rows]]
+    A = np.zeros((rows.size, 3, n))
+    for f in range(len(refs)):
+        at = flight[rows] == f
+        for j, power in enumerate((1.0, dt[at], 0.5 * dt[at] ** 2)[:m // 3]):
+            A[at, :, m * f + 3 * j:m * f + 3 * j + 3] = P[at] * np.reshape(power, (-1, 1, 1))
+    rhs = np.einsum("nij,nj->ni", P, rays.centres[rows] - 0.5 * rays.g * dt[:, None] ** 2)
+    blocks, values = [A.reshape(-1, n)], [rhs.reshape(-1)]
+    tie = _TIE / np.median(depth[rows])
+    for k, b in enumerate(bounces):
+        dt = b - refs[k]
+        a = np.zeros((3, n))
+        for j, power in enumerate((1.0, dt, 0.5 * dt**2)[:m // 3]):
+            a[:, m * k + 3 * j:m * k + 3 * j + 3] = -np.eye(3) * power * tie
+        a[:, m * (k + 1):m * (k + 1) + 3] = np.eye(3) * tie
+        blocks.append(a)
+        values.append(0.5 * rays.g * dt**2 * tie)
+        if heights is not None and heights[k] is not None:
+            a = np.zeros((1, n))
+            a[0, m * (k + 1) + 2] = tie
+            blocks.append(a)
+            values.append(np.array([heights[k] * tie]))
+    if m == 9:
+        # The prior on each flight's air acceleration, weighted like the flight's samples together.
+        noise = rays.noise if np.isfinite(rays.noise) else 1e-3
+        ends = np.concatenate([bounces, [rays.t.max()]])
+        for f in range(len(refs)):
+            weight = noise / AIR_PRIOR * np.sqrt(np.sum(flight[rows] == f))
+            a = np.zeros((3, n))
+            a[:, m * f + 6:m * f + 9] = np.eye(3) * weight
+            blocks.append(a)
+            mean = np.zeros(3)
+            if previous is not None and previous.size == n:
+                u = previous.reshape(len(refs), 3, 3)[f]
+                span = ends[f] - refs[f]
+                mean = rays.drag(u[1] + 0.5 * (rays.g + u[2]) * span)  # the drag at mid-flight
+            values.append(mean * weight)
+    return np.linalg.lstsq(np.concatenate(blocks), np.concatenate(values), rcond=None)[0]

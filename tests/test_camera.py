@@ -1,0 +1,160 @@
+"""Cameras: OpenCV's projection (against OpenCV itself and against MuJoCo's camera
+projection sensor), its inverse, and camera files (as OpenCV's FileStorage writes them)."""
+
+import json
+
+import cv2
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from estim.tracks._camera import Camera, CameraArrays, CameraError, read_camera, rodrigues
+
+RNG = np.random.default_rng(3)
+K = np.array([[1400.0, 0.0, 955.0], [0.0, 1390.0, 541.0], [0.0, 0.0, 1.0]])
+DIST = np.array([-0.21, 0.06, 0.0012, -0.0021, 0.011])
+RVEC = np.array([1.2, -0.3, 0.4])
+TVEC = np.array([0.1, 0.2, 3.0])
+
+
+def _points_in_front(camera, n=40):
+    p = RNG.normal(size=(3 * n, 3)) * 0.6
+    return p[np.asarray(camera.depth(p)) > 1.0][:n]
+
+
+def test_projection_is_opencvs():
+    cam = Camera.from_opencv(K, DIST, RVEC, TVEC)
+    pts = _points_in_front(cam)
+    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, DIST)
+    assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
+    assert np.abs(np.asarray(cam.rotation) - cv2.Rodrigues(RVEC)[0]).max() < 1e-15
+    assert np.abs(cam.rvec - RVEC).max() < 1e-14
+
+
+def test_projection_derivative_matches_finite_differences():
+    cam = Camera.from_opencv(K, DIST, RVEC, TVEC)
+    p = _points_in_front(cam, 1)[0]
+    J = np.asarray(jax.jacfwd(cam.project)(p))
+    h = 1e-6
+    fd = np.stack([(np.asarray(cam.project(p + h * e)) - np.asarray(cam.project(p - h * e))) / (2 * h)
+                   for e in np.eye(3)], axis=1)
+    assert np.abs(J - fd).max() < 1e-4 * np.abs(J).max()
+
+
+def test_undistortion_and_rays_invert_the_projection():
+    cam = Camera.from_opencv(K, DIST, RVEC, TVEC)
+    pts = _points_in_front(cam)
+    uv = np.asarray(cam.project(pts))
+    ours = cam.normalised(uv)
+    theirs = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, DIST, criteria=(cv2.TERM_CRITERIA_COUNT, 20, 0))[:, 0]
+    assert np.abs(ours - theirs).max() < 1e-12
+    # Each point lies on its pixel's ray (to the accuracy of 20 fixed-point iterations).
+    d = cam.rays(uv)
+    v = pts - cam.centre
+    miss = np.linalg.norm(v - np.sum(v * d, axis=1)[:, None] * d, axis=1)
+    assert miss.max() < 1e-6
+
+
+@pytest.mark.parametrize("focal", [(900.0, 900.0), (1400.0, 1320.0)])
+def test_projection_is_mujocos_camera_projection(focal):
+    # MuJoCo's camprojection sensor projects a site through an MJCF camera (which looks
+    # along its -z, y up: OpenCV's axes turned half a turn about x) onto an image whose
+    # pixel (0, 0) is the corner of the top-left pixel: OpenCV's pixel + 0.5, with the
+    # principal point at the image centre.
+    w, h = 1280, 720
+    cam = Camera.look_at((2.5, -1.5, 1.2), (0.1, 0.2, 0.0), focal=focal[0], size=(w, h))
+    cam = Camera.from_opencv([[focal[0], 0, (w - 1) / 2], [0, focal[1], (h - 1) / 2], [0, 0, 1]], (), cam.rvec,
+                             np.asarray(cam.translation), size=(w, h))
+    R, c = np.asarray(cam.rotation), [float(v) for v in cam.centre]
+    pts = _points_in_front(cam, 12)
+    sites = "".join(f'<site name="s{i}" pos="{" ".join(repr(float(v)) for v in p)}"/>' for i, p in enumerate(pts))
+    sensors = "".join(f'<camprojection site="s{i}" camera="cv"/>' for i in range(len(pts)))
+    xyaxes = " ".join(repr(float(v)) for v in np.concatenate([R[0], -R[1]]))
+    xml = (f'<mujoco><worldbody><camera name="cv" pos="{c[0]!r} {c[1]!r} {c[2]!r}" xyaxes="{xyaxes}" '
+           f'resolution="{w} {h}" focalpixel="{focal[0]} {focal[1]}" sensorsize="1 1"/>{sites}</worldbody>'
+           f'<sensor>{sensors}</sensor></mujoco>')
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    theirs = data.sensordata.reshape(-1, 2) - 0.5
+    # MuJoCo stores the focal length in float32: agreement to its precision.
+    assert np.abs(np.asarray(cam.project(pts)) - theirs).max() < 2e-4
+
+
+def test_camera_arrays_project_each_row_by_its_camera():
+    a = Camera.from_opencv(K, DIST, RVEC, TVEC, name="a")
+    b = Camera.look_at((0.0, -4.0, 1.5), (0.0, 0.0, 0.0), focal=1000.0, size=(1920, 1080), name="b")
+    pts = _points_in_front(a, 6)
+    which = np.array([0, 1, 1, 0, 1, 0])
+    got = np.asarray(CameraArrays.of((a, b)).project(pts, which))
+    for i, k in enumerate(which):
+        assert np.allclose(got[i], np.asarray((a, b)[k].project(pts[i])), rtol=0, atol=1e-9)
+
+
+def test_a_point_behind_the_camera_projects_finitely():
+    cam = Camera.look_at((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), focal=1000.0, size=(640, 480))
+    uv = np.asarray(cam.project(np.array([0.1, -5.0, 0.1])))
+    assert np.all(np.isfinite(uv)) and np.abs(uv).max() > 1e5
+
+
+@pytest.mark.parametrize("ext", ["yml", "json"])
+def test_reads_what_opencvs_file_storage_writes(tmp_path, ext):
+    path = tmp_path / f"left.{ext}"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("calibration_time", "Thu Nov 26 2026")
+    fs.write("image_width", 1920)
+    fs.write("image_height", 1080)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", DIST.reshape(1, 5))
+    fs.write("avg_reprojection_error", 0.31)
+    fs.write("rvec", RVEC.reshape(3, 1))
+    fs.write("tvec", TVEC.reshape(3, 1))
+    fs.release()
+    cam = read_camera(path)
+    assert cam.name == "left" and cam.size == (1920, 1080)
+    pts = _points_in_front(cam)
+    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, DIST)
+    assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
+
+
+@pytest.mark.parametrize("text", [
+    "rvec: [0.1, -0.2, 0.3]\ntvec: [0.0, 0.1, 2.5]\nf: 1200\nw: 1920\nh: 1080\n",
+    json.dumps({"rvec": [0.1, -0.2, 0.3], "tvec": [0.0, 0.1, 2.5], "f": 1200, "w": 1920, "h": 1080}),
+])
+def test_the_short_form(tmp_path, text):
+    path = tmp_path / "cam.txt"
+    path.write_text(text)
+    cam = read_camera(path)
+    assert np.allclose(np.asarray(cam.matrix), [[1200, 0, 959.5], [0, 1200, 539.5], [0, 0, 1]])
+    assert np.allclose(np.asarray(cam.rotation), rodrigues([0.1, -0.2, 0.3]))
+    assert cam.size == (1920, 1080) and not np.any(np.asarray(cam.distortion))
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("rvec: [0, 0, 0]\ntvec: [0, 0, 1]\nf: 1000\nw: 640\n", r"no \['h'\]"),
+    ("rvec: [0, 0, 0]\ntvec: [0, 0, 1]\nf: -5\nw: 640\nh: 480\n", "focal length must be > 0"),
+    ("rvec: [0, 0, 0]\ntvec: [0, 0]\nf: 1000\nw: 640\nh: 480\n", "3 numbers"),
+    ("rvec: [0, 0, 0]\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\ndist_coeffs: [0.1, 0, 0, 0]\n",
+     r"unknown entry \['dist_coeffs'\]"),
+    ("rvec: [0, 0, 0]\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\ncamera_matrix: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n",
+     "give one of the two"),
+    ("camera_matrix: [1000, 3, 320, 0, 1000, 240, 0, 0, 1]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n", "no skew"),
+    ("camera_matrix: [1000, 0, 320, 0, 1000, 240, 0, 0, 1]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n"
+     "distortion_coefficients: [0.1, 0, 0, 0, 0, 0.2, 0, 0]\n", "beyond k1 k2 p1 p2 k3"),
+    ("camera_matrix: [1000, 0, 320, 0, 1000, 240, 0, 0]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n", "has 8 numbers"),
+    ("rvec: [0, 0, nan]\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\n", "not a list of numbers"),
+    ("this is not a camera\n", "expected 'key: value'"),
+    ('{"rvec": [0, 0, 0], ', "not valid JSON"),
+])
+def test_a_camera_file_that_does_not_parse_names_the_problem(tmp_path, text, message):
+    path = tmp_path / "bad.yml"
+    path.write_text(text)
+    with pytest.raises(CameraError, match=message) as err:
+        read_camera(path)
+    assert str(path) in str(err.value)
+
+
+def test_a_missing_camera_file():
+    with pytest.raises(FileNotFoundError, match="camera file not found"):
+        read_camera("/nonexistent/cam.yml")

@@ -1,0 +1,104 @@
+"""Image tracks: the t,ball,u,v[,camera] CSV, and the 3-D start through the physics
+(estim.tracks._reconstruct) against paths of known shape seen by known cameras."""
+
+import numpy as np
+import pytest
+
+import estim
+from estim.tracks._camera import Camera
+from estim.tracks._csv import TracksError
+from estim.tracks._image import ImageTracks, read_image_tracks_csv
+from estim.tracks._reconstruct import reconstruct, surface_height
+
+SIDE = Camera.look_at((3.0, -0.5, 1.0), (0.0, 0.0, 0.0), focal=1400.0, size=(1920, 1080), name="side")
+BEHIND = Camera.look_at((0.5, -4.0, 1.5), (0.0, 0.0, 0.0), focal=1400.0, size=(1920, 1080), name="behind")
+G = 9.81
+
+
+def _vacuum_shot(t, e=0.88):
+    """A ball thrown along y that bounces once on the plane z = r (a closed form): the
+    flight, the impact reversing vz by e and keeping the horizontal velocity."""
+    r, p0, v0 = 0.02, np.array([-0.2, -1.6, 0.25]), np.array([0.4, 6.5, 1.6])
+    tb = (v0[2] + np.sqrt(v0[2] ** 2 + 2 * G * (p0[2] - r))) / G
+    pb = p0 + v0 * tb + 0.5 * np.array([0, 0, -G]) * tb**2
+    vb = v0 + np.array([0, 0, -G]) * tb
+    vb[2] *= -e
+    out = np.where((t < tb)[:, None], p0 + np.outer(t, v0) + 0.5 * np.outer(t**2, [0, 0, -G]),
+                   pb + np.outer(t - tb, vb) + 0.5 * np.outer((t - tb) ** 2, [0, 0, -G]))
+    return out, tb
+
+
+def _tracks(cameras, t, points, noise, seed=0, offsets=None):
+    rng = np.random.default_rng(seed)
+    ts, uvs, views = [], [], []
+    for k, cam in enumerate(cameras):
+        uvs.append(np.asarray(cam.project(points)) + rng.normal(0.0, noise, (len(t), 2)))
+        ts.append(t - (0.0 if offsets is None else offsets[k]))
+        views.append(np.full(len(t), k))
+    t, uv, view = (np.concatenate(a) for a in (ts, uvs, views))
+    order = np.lexsort((view, t))
+    return ImageTracks("synthetic", ("pingpong",), tuple(cameras), {"pingpong": t[order]},
+                       {"pingpong": uv[order]}, {"pingpong": view[order]})
+
+
+@pytest.fixture(scope="module")
+def table():
+    return estim.load_scene("data/scenes/table_tennis.xml")
+
+
+@pytest.mark.parametrize(("cameras", "tolerance"), [((SIDE,), 0.02), ((BEHIND,), 0.03), ((SIDE, BEHIND), 0.005)])
+def test_one_camera_gives_3d_through_gravity(table, cameras, tolerance):
+    # One camera: gravity's known size fixes the scale, the bounce on the table the depth.
+    # Two: a triangulation through the same least squares. 1 px of noise at 120 Hz, 3-4 m.
+    t = np.arange(0.0, 0.6, 1 / 120)
+    points, tb = _vacuum_shot(t)
+    tracks = _tracks(cameras, t, points, 1.0)
+    rec = reconstruct(tracks, "pingpong", table.with_air(None))
+    truth, _ = _vacuum_shot(tracks.t["pingpong"])
+    assert len(rec.bounces) == 1 and abs(rec.bounces[0] - tb) < 1 / 120
+    assert np.mean(np.linalg.norm(rec.position - truth, axis=1)) < tolerance
+    assert abs(rec.bounce_points[0, 2] - 0.02) < 1e-3  # the centre one radius above the table
+
+
+def test_noise_free_pixels_give_the_path_exactly(table):
+    t = np.arange(0.0, 0.6, 1 / 120)
+    points, tb = _vacuum_shot(t)
+    rec = reconstruct(_tracks((SIDE,), t, points, 0.0), "pingpong", table.with_air(None), bounces=(tb,))
+    assert np.abs(rec.position - points).max() < 1e-8
+
+
+def test_the_surface_beneath_a_point(table):
+    assert surface_height(table, 0.3, 0.5, 0.021, 0.02) == pytest.approx(0.0)  # the table top
+    assert surface_height(table, 1.2, 0.5, -0.7, 0.02) == pytest.approx(-0.76)  # off the table: the floor
+    assert surface_height(table, 0.0, 0.0, 0.17, 0.02) == pytest.approx(0.1525)  # the net's top
+
+
+def test_reads_an_image_track_csv(tmp_path):
+    path = tmp_path / "shot.csv"
+    path.write_text("t,ball,u,v,camera\n0.0,pingpong,10.5,20.25,side\n0.0,pingpong,11,21,behind\n"
+                    + "".join(f"{k / 100},pingpong,{10 + k},{20 + k},side\n{k / 100},pingpong,,{30 + k},2\n"
+                              for k in range(1, 9)))
+    tracks = read_image_tracks_csv(path, (SIDE, BEHIND), balls=("pingpong",))
+    assert tracks.cameras == (SIDE, BEHIND)
+    assert tracks.t["pingpong"].tolist() == sorted(tracks.t["pingpong"].tolist())
+    assert tracks.view["pingpong"][:2].tolist() == [0, 1]  # time, then camera
+    assert tracks.uv["pingpong"][0].tolist() == [10.5, 20.25]
+    assert tracks.n_obs("pingpong", 0) == 9 and tracks.n_obs("pingpong", 1) == 1  # a lost u is kept, masked
+    assert np.isnan(tracks.uv["pingpong"][3, 0])
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("t,ball,x,z\n", r"unknown column\(s\) \['x', 'z'\].*a track CSV"),
+    ("t,ball,u,v\n" + "".join(f"{k},pingpong,1,2\n" for k in range(8)), "no camera column"),
+    ("t,ball,u,v,camera\n0,pingpong,1,2,front\n", "camera 'front' is none of the cameras"),
+    ("t,ball,u,v,camera\n0,pingpong,1,2,3\n", "camera 3 is not one of the 2"),
+    ("t,ball,u,v,camera\n0.1,pingpong,1,2,1\n0.1,pingpong,1,2,1\n", "repeats"),
+    ("t,ball,u,v,camera\n0.1,golf,1,2,1\n", "unknown ball 'golf'"),
+    ("t,ball,u,v,camera\n0.1,pingpong,1e6,2,1\n", "not a pixel"),
+    ("t,ball,u,v,camera\n" + "".join(f"{k},pingpong,1,2,1\n" for k in range(5)), "only 5 rows"),
+])
+def test_a_bad_image_track_names_the_problem(tmp_path, text, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(TracksError, match=message):
+        read_image_tracks_csv(path, (SIDE, BEHIND), balls=("pingpong",))
