@@ -36,6 +36,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..forward._balls import inside
 from ..model._air import air_acceleration, spin_for_lift
 from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
@@ -105,6 +106,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
             recs = reconstructions(tracks, b, scene, alternatives=STARTS)
         except ValueError as err:
             raise ValueError(f"ball {b!r}: {err}") from None
+        recs = [_inside_out(rec, scene, b, tracks) for rec in recs]
         ok = tracks.valid(b)
         t, first = np.unique(tracks.t[b][ok], return_index=True)
         # Always STARTS keys per ball (the best start repeated where there are fewer), so
@@ -165,6 +167,25 @@ def start_values(rec, scene: Scene, ball: str) -> dict[str, float]:
         out.update(zip(("spin_x", "spin_y", "spin_z"), map(float, np.clip(spin, -SPIN_START, SPIN_START)),
                        strict=True))
     return out
+
+
+def _inside_out(rec, scene: Scene, ball: str, tracks: ImageTracks):
+    """A start path that runs through a solid is no start (a path without a bounce in view
+    has only gravity's size to fix its depth, which drag and spin falsify): it is scaled
+    about the first camera's centre (its pixels stay) to the depth that puts its first point
+    nearest the scene's release point of the ball. Other paths are returned as they are."""
+    spec = scene.ball(ball)
+    ok = tracks.valid(ball)
+    in_box, in_plane = inside(np, scene, rec.position[ok], np.full(int(ok.sum()), spec.radius))
+    if not (in_box.any() or in_plane.any()):
+        return rec
+    rows = np.flatnonzero(ok & (tracks.view[ball] == 0))
+    if not rows.size:
+        return rec
+    centre = tracks.cameras[0].centre
+    first = rec.position[rows[np.argmin(tracks.t[ball][rows])]] - centre
+    factor = float(np.dot(np.asarray(spec.position) - centre, first) / np.dot(first, first))
+    return rec.scaled(min(max(factor, 0.05), 20.0), centre)
 
 
 def _initial(rec, values: dict[str, float]) -> Initial:

@@ -37,6 +37,7 @@ start, not an estimate: drag, spin and the cameras' clock offsets are left to th
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -101,6 +102,19 @@ class Reconstruction:
         k = int(np.searchsorted(np.asarray(self.bounces), t, side="right")) if flight is None else flight
         u = self.flights[k]
         return u[1] + self.acceleration(k) * (t - self.refs[k])
+
+    def scaled(self, factor: float, centre) -> Reconstruction:
+        """The path scaled by ``factor`` about the point ``centre`` (a camera's centre: its
+        pixels stay where they are, the depth changes): positions ``centre + factor (p -
+        centre)``, velocities and accelerations (gravity's included) times ``factor``."""
+        c = np.asarray(centre, dtype=np.float64)
+        flights = np.zeros((self.flights.shape[0], 3, 3))
+        flights[:, 0] = c + factor * (self.flights[:, 0] - c)
+        flights[:, 1] = factor * self.flights[:, 1]
+        flights[:, 2] = np.stack([factor * self.acceleration(k) - self.gravity for k in range(len(flights))])
+        return dataclasses.replace(self, position=c + factor * (self.position - c),
+                                   bounce_points=c + factor * (self.bounce_points - c), flights=flights,
+                                   depth=factor * self.depth)
 
     def acceleration(self, flight: int) -> np.ndarray:
         """The acceleration of ``flight`` (gravity, and in air its own besides)."""
@@ -189,7 +203,7 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
     surfaces = _surfaces(scene, radius)
     if bounces is None:
         bounces = _find_bounces(rays, _bounce_times(tracks, ball), surfaces)
-    bounces = tuple(sorted(bounces))
+    bounces = _viable(tuple(sorted(bounces)), rays.t)
     t_all, view = tracks.t[ball], tracks.view[ball]
     out = []
     for x, keep, miss, _, _ in _on_surfaces(rays, bounces, surfaces, ranked=alternatives):
@@ -371,6 +385,21 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
             if k + 1 < len(bounces):
                 hi = min(hi, bounces[k + 1])
             bounces[k] = _golden(lambda b, k=k: score(bounces[:k] + [b] + bounces[k + 1:], chosen), lo, hi)
+    return tuple(bounces)
+
+
+def _viable(bounces: tuple[float, ...], t: np.ndarray) -> tuple[float, ...]:
+    """``bounces`` without those that leave a flight fewer than 3 rows (too few to fix
+    it): such a bounce is merged into its neighbour flight (the fit still sees it, through
+    the physics, where the data show it)."""
+    bounces = list(bounces)
+    while bounces:
+        counts = np.bincount(np.searchsorted(np.asarray(bounces), t, side="right"), minlength=len(bounces) + 1)
+        short = np.flatnonzero(counts < 3)
+        if not short.size:
+            break
+        k = int(short[0])
+        bounces.pop(min(k, len(bounces) - 1))
     return tuple(bounces)
 
 
