@@ -6,6 +6,7 @@ import json
 import math
 
 import cv2
+import mujoco
 import numpy as np
 import pytest
 from test_image_tracks import BEHIND, SIDE, _tracks
@@ -14,6 +15,7 @@ import estim
 from estim.app._cli import main
 from estim.fitting._fit import BallFit
 from estim.fitting._image import DEPTH_LIMIT, _depth_report, fit_image
+from estim.show._replay import calibrated_model, calibrated_view, render_frames, replay_motion
 from estim.tracks._camera import Camera
 
 TRUTH = {"e": 0.88, "mu": 0.3, "position": [-0.2, -1.6, 0.25], "velocity": [0.4, 6.5, 1.6],
@@ -137,8 +139,6 @@ def test_the_replay_from_a_calibrated_camera_puts_the_ball_where_the_camera_sees
     # MuJoCo renders the fitted ball through a camera built from the calibrated one (pose,
     # field of view, the principal point's offset as a shift of the picture); the ball's
     # centre in the picture is the calibrated camera's projection of the fitted position.
-    from estim.show._replay import calibrated_model, calibrated_view, render_frames, replay_motion
-
     path = "data/scenes/table_tennis.xml"
     cam = Camera.from_opencv([[1400, 0, 1010], [0, 1400, 490], [0, 0, 1]], (), SIDE.rvec, SIDE.translation,
                              size=(1920, 1080))
@@ -165,8 +165,6 @@ def test_the_replay_from_a_calibrated_camera_puts_the_ball_where_the_camera_sees
 
 
 def test_a_replay_refuses_a_camera_it_cannot_render():
-    from estim.show._replay import calibrated_view
-
     with pytest.raises(ValueError, match="differ"):
         calibrated_view(Camera.from_opencv([[1400, 0, 960], [0, 1200, 540], [0, 0, 1]], size=(1920, 1080)))
     with pytest.raises(ValueError, match="distortion"):
@@ -181,8 +179,6 @@ def test_mujoco_as_the_camera():
     # (MuJoCo's segmentation: the pixels of the ball's geom; their centroid), and the
     # pixels are fitted through the OpenCV camera that MuJoCo's describes (focal length
     # (h / 2) / tan(fovy / 2); MuJoCo's pixel (0, 0) is a corner, OpenCV's a centre).
-    import mujoco
-
     scene = estim.load_scene("data/scenes/table_tennis.xml").with_air(None)
     path = _shot(scene)
     w, h, fovy = 960, 540, 40.0
