@@ -560,10 +560,10 @@ def _cmd_demo(args) -> int:
     summary = run_demo(args.out, scene_path=args.scene)
     print(format_summary(summary))
     print("wrote " + ", ".join(summary["files"]))
-    fit_args = argparse.Namespace(tracks=[str(DEMO_TRACKS)], scene=args.scene, out=args.out,
-                                  json=False, loss="cauchy", pixels=False, frame_interval=None,
-                                  metres_per_pixel=None, ball=None, from_bounce=0, shared=None,
-                                  devices=None, distributed=False)
+    # `estim fit` on the bundled tracks, its arguments parsed as the command line would (every
+    # option of `estim fit` gets its default).
+    fit_args = build_parser().parse_args(["fit", str(DEMO_TRACKS), "--out", str(args.out)]
+                                         + (["--scene", str(args.scene)] if args.scene else []))
     code = _cmd_fit(fit_args)
     print("wrote " + ", ".join(write_replays(args.out, scene_path=args.scene)))
     return code
