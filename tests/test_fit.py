@@ -258,7 +258,8 @@ def test_loss_gradient_matches_finite_differences(stairs):
               "vx0": truth[ball]["vx0"] + 0.02, "x0": spec.position[0] + 0.003,
               "z0": spec.position[2] - 0.002, "vz0": 0.05, "t0": -0.004, "y0": spec.position[1],
               "vy0": 0.0, "drag_coefficient": 0.47,  # drag and spin: no effect in a vacuum
-              "lift_factor": 1.0, "spin_x": 0.0, "spin_y": 0.0, "spin_z": 0.0, "pixel_scale": 1.0}
+              "lift_factor": 1.0, "spin_x": 0.0, "spin_y": 0.0, "spin_z": 0.0, "pixel_scale": 1.0,
+              "dt_camera2": 0.0, "dt_camera3": 0.0, "dt_camera4": 0.0}  # (the clocks of image fits' cameras)
     phi0 = registry.pack(values)
     assert set(values) == set(PARAMETERS)
     mask = np.isfinite(pos)

@@ -91,8 +91,8 @@ class _Problem(eqx.Module):
     scale: jax.Array  # () noise level s of the robust loss (m)
     anchor: jax.Array  # (3,) the point the observations scale about (pixel_scale)
     size: jax.Array  # () the track's own samples: the first ``size`` of the N
-    view: jax.Array  # (N,) int: the camera that saw each row (image tracks; 0 otherwise)
-    cameras: CameraArrays | None  # image tracks: the cameras, obs holding (u, v, 0); else None
+    view: jax.Array | None = None  # image tracks: (N,) int, the camera that saw each row
+    cameras: CameraArrays | None = None  # image tracks: the cameras, obs holding (u, v, 0)
 
 
 class ImageRows(NamedTuple):
@@ -414,12 +414,12 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     names = list(data)
     lateral = any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)
     free = registry.default_free(scene, lateral) if free is None else registry.expand(free)
-    registry.check_acting(scene, free)
+    offsets = registry.component("dt_camera2").components
+    registry.check_acting(scene, [n for n in free if n not in offsets])
     if set(registry.FACTOR_FREE) <= set(free) and "y0" not in free and lateral:
         free = tuple(free) + tuple(n for n in registry.LATERAL if n not in free)  # 3-D tracks: the lateral release state too
     images = images or {}
     n_cameras = min((len(images[b].cameras.matrix) if b in images else 1) for b in names) if names else 1
-    offsets = registry.component("dt_camera2").components
     unseen = [n for n in offsets[n_cameras - 1:] if n in free]
     if unseen:
         raise ValueError(f"fitting {unseen}: the clock offsets of cameras this data does not have "
@@ -455,7 +455,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
                                    np.zeros((len(t), 1), bool)], axis=1)
             view, cameras, noise = np.asarray(rows.view, dtype=np.int64), rows.cameras, rows.noise
         else:
-            obs, mask, view, cameras, noise = pos, np.isfinite(pos), np.zeros(len(t), np.int64), None, init.noise
+            obs, mask, view, cameras, noise = pos, np.isfinite(pos), None, None, init.noise
         pad = n_max - len(t)
         problems.append(_Problem(
             t=np.concatenate([t, np.full(pad, t[-1])]),
@@ -468,7 +468,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
             scale=np.float64(noise if np.isfinite(noise) and noise > 0 else (1.0 if b in images else 2e-3)),
             anchor=np.asarray((anchors or {}).get(b, (0.0, 0.0, 0.0)), dtype=np.float64),
             size=np.int64(len(t)),
-            view=np.concatenate([view, np.zeros(pad, np.int64)]),
+            view=None if view is None else np.concatenate([view, np.zeros(pad, np.int64)]),
             cameras=cameras,
         ))
         starts.append(registry.to_theta(phi, free))
@@ -837,8 +837,8 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
     # The values of the parameters that act in the scene (under the friction law: mu, not mu_t).
     acting = registry.acting(scene)
     n_cameras = 1 if problem.cameras is None else len(problem.cameras.matrix)
-    unseen = registry.component("dt_camera2").components[n_cameras - 1:]  # clocks of cameras the data lacks
-    values = {n: float(v) for n, v in registry.unpack(phi).items() if n in acting and n not in unseen}
+    seen = registry.component("dt_camera2").components[:n_cameras - 1]  # the clocks of the data's other cameras
+    values = {n: float(v) for n, v in registry.unpack(phi).items() if n in acting or n in seen}
     # Jacobian with respect to the physical parameters: d phi / d theta per column.
     dphi = registry.slopes(phi, free)
     at_bound = dphi < 1e-10  # sigmoid saturated: the parameter sits on the edge of its range

@@ -245,6 +245,12 @@ def _always(scene: Scene) -> bool:
     return True
 
 
+def _never(scene: Scene) -> bool:
+    """Acts through what is observed, not through the scene (the cameras' clocks: an image
+    fit admits them itself, estim.fitting._fit)."""
+    return False
+
+
 def _in_air(scene: Scene) -> bool:
     return scene.air is not None
 
@@ -296,7 +302,7 @@ REGISTRY: tuple[Parameter, ...] = (
               zero_where_idle=True, doc="angular velocity at release: the Magnus force in flight, the "
                                         "friction law's bounces"),
     Parameter("camera_offset", field=None, components=tuple(f"dt_camera{k}" for k in range(2, MAX_CAMERAS + 1)),
-              unit="s", default=0.0,
+              unit="s", default=0.0, acts=_never, acts_where="in a fit of image tracks seen by several cameras",
               doc="time added to the clock of camera k (2, 3, ...) to put its rows on camera 1's: image tracks "
                   "seen by several cameras (estim.fitting._image)"),
     Parameter("pixel_scale", field=None, transform=Exp(), default=1.0,
