@@ -170,13 +170,17 @@ def start_values(rec, scene: Scene, ball: str) -> dict[str, float]:
 
 
 def _inside_out(rec, scene: Scene, ball: str, tracks: ImageTracks):
-    """A start path that runs through a solid is no start (a path without a bounce in view
-    has only gravity's size to fix its depth, which drag and spin falsify): it is scaled
+    """A start path without a bounce that runs through a solid is no start (it has only
+    gravity's size to fix its depth, which drag and spin falsify): it is scaled
     about the first camera's centre (its pixels stay) to the depth that puts its first point
     nearest the scene's release point of the ball. Other paths are returned as they are."""
+    if rec.bounces:  # a bounce on a surface holds the scale; only a path without one can stray
+        return rec
     spec = scene.ball(ball)
     ok = tracks.valid(ball)
-    in_box, in_plane = inside(np, scene, rec.position[ok], np.full(int(ok.sum()), spec.radius))
+    # Half the radius: a start that touches a surface at a bounce (the centre one radius
+    # above it, to rounding) is a start; one that runs through a solid is not.
+    in_box, in_plane = inside(np, scene, rec.position[ok], np.full(int(ok.sum()), 0.5 * spec.radius))
     if not (in_box.any() or in_plane.any()):
         return rec
     rows = np.flatnonzero(ok & (tracks.view[ball] == 0))

@@ -361,6 +361,8 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
             x, _, miss, _, _ = _on_surfaces(rays, tuple(candidate), surfaces, chosen)
         except ValueError:
             return np.inf
+        if not _rebounds(rays, x, tuple(candidate)):
+            return np.inf
         return rays.score(miss, x, tuple(candidate))
 
     bounces = list(bounces)
@@ -386,6 +388,21 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
                 hi = min(hi, bounces[k + 1])
             bounces[k] = _golden(lambda b, k=k: score(bounces[:k] + [b] + bounces[k + 1:], chosen), lo, hi)
     return tuple(bounces)
+
+
+def _rebounds(rays: _Rays, x, bounces) -> bool:
+    """Every bounce of the path turns the ball's fall into a rise (the vertical velocity
+    from below zero before to above zero after): a path that merely bends, which the air's
+    free accelerations could fit with an extra flight, has no bounce there."""
+    flights = x.reshape(len(bounces) + 1, -1, 3)
+    refs = rays.refs(bounces)
+    for k, b in enumerate(bounces):
+        u = flights[k]
+        a = rays.g + (u[2] if u.shape[0] == 3 else 0.0)
+        before = u[1][2] + a[2] * (b - refs[k])
+        if not (before < 0.0 < flights[k + 1][1][2]):
+            return False
+    return True
 
 
 def _viable(bounces: tuple[float, ...], t: np.ndarray) -> tuple[float, ...]:
