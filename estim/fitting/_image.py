@@ -126,13 +126,11 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     # what the caller holds or gives wins.
     given = fixed or {}
     fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
-    options = dict(loss=loss, steps=steps, max_segments=max_segments, progress=progress, balls=ball_of,
-                   images=images)
-    every, _ = _fit_all(scene, data, free=free, fixed=fixed, restarts=restarts, explore=True, **options)
+    every, _ = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
+                        max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True)
     result = FitResult({b: every.balls[_best(every, b)] for b in tracks.balls})
     for b, bf in result.balls.items():
         bf.ball = b
-    for bf in result.balls.values():
         bf.depth = _depth_report(bf, tracks.cameras[0])
         if not bf.depth["fixed"]:
             bf.notes.append(bf.depth["note"])
