@@ -49,7 +49,7 @@ def _(mo):
 def _(OUT, ROOT, estim, json, np):
     scene = estim.load_scene(ROOT / "data" / "scenes" / "table_tennis.xml")
     TRUTH = {"e": 0.88, "mu": 0.3, "position": np.array([-0.2, -1.6, 0.25]),
-             "velocity": np.array([0.4, 6.0, 1.4]), "spin": np.array([-110.0, 0.0, 30.0])}
+             "velocity": np.array([0.4, 6.0, 1.8]), "spin": np.array([-110.0, 0.0, 30.0])}
     T = np.arange(0.0, 0.55, 1.0 / 60.0)
     _params = estim.Params.for_ball(scene, "pingpong", e=TRUTH["e"], mu_t=0.0, mu=TRUTH["mu"],
                                     position=TRUTH["position"], velocity=TRUTH["velocity"], spin=TRUTH["spin"])

@@ -42,7 +42,9 @@ def test_one_camera_in_a_vacuum():
     # bounce that grips can show, beyond what grips (mu is then not identifiable either).
     scene = estim.load_scene("data/scenes/table_tennis.xml").with_air(None)
     tracks = _tracks((SIDE,), T, _shot(scene), 1.0, seed=4)
-    bf = fit_image(scene, tracks).balls["pingpong"]
+    # 40 iterations: the spin's directions that a grip leaves open slow the loss's last
+    # digits, and 30 stop a few 1e-5 short of the convergence test.
+    bf = fit_image(scene, tracks, steps=40).balls["pingpong"]
     assert bf.unit == "px" and bf.converged and bf.at_noise_floor
     # One camera at 3 m and 1 px reads e to about 0.013 here: within three standard errors.
     assert bf.stderr["e"] < 0.02 and abs(bf.values["e"] - TRUTH["e"]) < 3 * bf.stderr["e"]

@@ -183,6 +183,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "(names of the parameter registry): vz0, t0 (time offset), y0, vy0, and "
                           "in a scene with air drag_coefficient and spin_x, spin_y, spin_z (rad/s); "
                           "a vector's name stands for its components (velocity, position, spin)")
+    fit.add_argument("--prior", action="append", default=None, metavar="NAME=MEAN,SD",
+                     help="what is known of a fitted parameter before the data: its mean and "
+                          "standard deviation (e.g. e=0.88,0.05; a vector's name for each component), "
+                          "or NAME=none to drop the scene's prior on it; repeatable. The scene's priors "
+                          "(<numeric name=\"estim:prior:NAME\">) apply unless dropped")
     fit.add_argument("--shared", nargs="+", default=None, metavar="PARAM",
                      choices=registry.NAMES + tuple(p.name for p in registry.REGISTRY if p.components != (p.name,)),
                      help="with several files: the parameters shared by every clip of a ball (e.g. "
@@ -624,14 +629,37 @@ def _cmd_replay(args) -> int:
 
 def _also(args, base) -> dict:
     """``free=`` for the fit when --also asks for more parameters (registry names; a
-    vector's name stands for its components), else nothing (the fit's default). ``base``:
-    the default to add them to, or a scene (its default, ``registry.default_free``; the
-    lateral release state joins it where the tracks have y, as in ``estim.fit``)."""
+    vector's name stands for its components), else nothing (the fit's default), and
+    ``prior=`` when --prior gives priors. ``base``: the default to add them to, or a scene
+    (its default, ``registry.default_free``; the lateral release state joins it where the
+    tracks have y, as in ``estim.fit``)."""
+    out = {"prior": _priors(args.prior)} if getattr(args, "prior", None) else {}
     if not getattr(args, "also", None):
-        return {}
+        return out
     if not isinstance(base, tuple):
         base = registry.default_free(base, lateral=False)
-    return {"free": tuple(base) + tuple(n for n in registry.expand(args.also) if n not in base)}
+    return {**out, "free": tuple(base) + tuple(n for n in registry.expand(args.also) if n not in base)}
+
+
+def _priors(items) -> dict:
+    """``--prior NAME=MEAN,SD`` or ``NAME=none`` as ``estim.fit``'s ``prior``."""
+    out = {}
+    for item in items:
+        name, sep, spec = item.partition("=")
+        if not sep or not name:
+            raise UsageError(f"--prior {item!r}: expected NAME=MEAN,SD or NAME=none")
+        if spec.strip().lower() == "none":
+            out[name] = None
+            continue
+        parts = spec.split(",")
+        try:
+            mean, sd = (_finite(p) for p in parts) if len(parts) == 2 else (None, None)
+        except argparse.ArgumentTypeError as err:
+            raise UsageError(f"--prior {item!r}: {err}") from None
+        if mean is None:
+            raise UsageError(f"--prior {item!r}: expected NAME=MEAN,SD (two numbers) or NAME=none")
+        out[name] = (mean, sd)
+    return out
 
 
 def _check_pixel_options(args) -> None:
@@ -752,6 +780,9 @@ def _cmd_fit(args) -> int:
         if args.camera:
             raise UsageError("--shared with --camera: fits of several image-track files together are not "
                              "supported; fit each file on its own")
+        if args.prior:
+            raise UsageError("--prior with --shared: a fit of several clips takes no priors (the scene's are "
+                             "dropped too: many clips fix what one cannot); fit one file to use a prior")
         return _cmd_fit_clips(args, scene, say)
     for flag in ("devices", "distributed"):
         if getattr(args, flag):

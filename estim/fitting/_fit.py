@@ -76,6 +76,10 @@ MIN_SAMPLES = 8  # samples with x and z that a ball needs (as read_tracks_csv by
 # Restarts of a batch of more than 2 SUBSET_MIN keys run only the keys that restart (padded
 # to a power of two, at least this many), when they are at most half of the batch.
 SUBSET_MIN = 8
+# A fitted parameter whose standard error exceeds this fraction of its prior's standard
+# deviation is reported as held by the prior (the data add less than about 1.3 times the
+# prior's information).
+PRIOR_DECIDES = 0.8
 
 
 class _Problem(eqx.Module):
@@ -93,6 +97,7 @@ class _Problem(eqx.Module):
     size: jax.Array  # () the track's own samples: the first ``size`` of the N
     view: jax.Array | None = None  # image tracks: (N,) int, the camera that saw each row
     cameras: CameraArrays | None = None  # image tracks: the cameras, obs holding (u, v, 0)
+    prior: jax.Array | None = None  # (2, len(PARAMETERS)): priors' means and 1/sd (registry.prior_arrays)
 
 
 class ImageRows(NamedTuple):
@@ -183,13 +188,24 @@ def _residuals(scene, phi, problem, pl, n_used):
     return r, (valid.reshape(-1), pos, impacts)
 
 
+def _prior_rows(phi, problem: _Problem):
+    """The priors as rows of residuals: ``(phi - mean) / sd`` in noise units, times the
+    robust scale (zero where a component has no prior); none without priors."""
+    if problem.prior is None:
+        return jnp.zeros(0)
+    return (phi - problem.prior[0]) * problem.prior[1] * problem.scale
+
+
 def _linearise(scene, free, loss, theta, problem, pl, n_used):
     """Residuals ``r`` and their Jacobian ``J`` with respect to theta (forward mode, one
     simulation with the plan ``pl``), the diagnostics ``aux`` of ``_residuals``, the
-    residuals in noise units ``u`` and the robust loss (inf where J is not finite)."""
+    residuals in noise units ``u`` and the robust loss (inf where J is not finite). With
+    priors (``_Problem.prior``) their rows follow the data's (``_prior_rows``)."""
 
     def evaluate(theta):
-        r, aux = _residuals(scene, registry.to_physical(theta, free, problem.fixed), problem, pl, n_used)
+        phi = registry.to_physical(theta, free, problem.fixed)
+        r, aux = _residuals(scene, phi, problem, pl, n_used)
+        r = jnp.concatenate([r, _prior_rows(phi, problem)])
         return r, (r, aux)
 
     J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
@@ -205,7 +221,8 @@ def _lm_step(scene, free, loss, carry, problem, pl, n_used):
     theta, state, best = carry
     J, r, aux, u, value = _linearise(scene, free, loss, theta, problem, pl, n_used)
     improved = value < state.best_value
-    best = jax.tree.map(lambda new, old: jnp.where(improved, new, old), (r, J, aux), best)
+    m = problem.obs.size  # the data's rows; the priors' follow
+    best = jax.tree.map(lambda new, old: jnp.where(improved, new, old), (r[:m], J[:m], aux), best)
     updates, state = _LM.update(
         None, state, theta, jacobian=J, residuals=r, weights=robust_weight(u, loss), value=value
     )
@@ -245,6 +262,7 @@ class BallFit:
     missing_physics: list[dict] = field(default_factory=list)  # effects the scene lacks, or coefficients held
     unit: str = "m"  # of the residuals: "m" (tracks in metres) or "px" (image tracks, estim.fit_image)
     depth: dict | None = None  # image tracks: how well the pixels fix the path's depth (estim.fitting._image)
+    prior: dict[str, tuple[float, float]] = field(default_factory=dict)  # the priors applied: (mean, sd)
 
     def to_json(self) -> dict:
         """The values by their registry names (those that act in the fit's scene), the
@@ -271,6 +289,8 @@ class BallFit:
             out["missing_physics"] = self.missing_physics
         if self.depth is not None:
             out["depth"] = self.depth
+        if self.prior:
+            out["prior"] = {n: {"mean": m, "sd": sd} for n, (m, sd) in self.prior.items()}
         return out
 
 
@@ -329,6 +349,7 @@ def fit(
     progress: Callable[[str], None] | None = None,
     balls: dict[str, str] | None = None,
     anchors: dict[str, tuple[float, float, float]] | None = None,
+    prior: dict[str, tuple[float, float] | None] | None = None,
 ) -> FitResult:
     """Fit every ball of a data set.
 
@@ -363,6 +384,14 @@ def fit(
         anchors: per key, the point (m) its observed positions scale about when
             ``pixel_scale`` is fitted or fixed (a pixel track's surface: the first sample's
             x and the top of the surface; default the origin).
+        prior: what is known of the fitted parameters before the data: ``name -> (mean,
+            standard deviation)`` (a vector's name for each of its components), or ``name
+            -> None`` to drop a prior the scene declares (``Scene.priors``; the scene's
+            apply unless dropped). Each prior on a fitted parameter enters the loss as one
+            more residual, ``(value - mean) / sd`` in noise units, under the same robust
+            loss as the data (Gaussian under ``"l2"``, heavy-tailed under ``"cauchy"``);
+            the standard errors are then the posterior's. A scene's prior on a parameter
+            the fit holds is not used; a given one is an error.
 
     Raises:
         ValueError: data or fixed values that a fit cannot use, naming the ball and the
@@ -374,7 +403,7 @@ def fit(
         KeyError: a ball the scene does not have.
     """
     return _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
-                    max_segments=max_segments, progress=progress, balls=balls, anchors=anchors)[0]
+                    max_segments=max_segments, progress=progress, balls=balls, anchors=anchors, prior=prior)[0]
 
 
 @dataclass
@@ -395,7 +424,7 @@ class _Units:
 
 
 def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, progress, balls, anchors=None,
-             devices=None, images=None, explore=False):
+             devices=None, images=None, explore=False, prior=None):
     """:func:`fit`, and what it worked on (``_Units``); the keys split over ``devices``
     (``estim.fitting._sharding``; default: one device). A key of ``images``
     (:class:`ImageRows`) is fitted to its pixels; its ``data`` is then a 3-D start (the
@@ -427,6 +456,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     if not names:
         raise ValueError("no balls to fit")
     gravity = _gravity_vector(scene)
+    priors = _priors_of(scene, prior, free)
     fixed = fixed or {}
     if "t0" not in free:
         _check_release_time(data, fixed)
@@ -470,6 +500,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
             size=np.int64(len(t)),
             view=None if view is None else np.concatenate([view, np.zeros(pad, np.int64)]),
             cameras=cameras,
+            prior=registry.prior_arrays(priors) if priors else None,
         ))
         starts.append(registry.to_theta(phi, free))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
@@ -543,7 +574,8 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         rows = [i for i, go in enumerate(todo) if go]
         tried, at = run_rows(trial, batch, rows)
         for k, i in enumerate(at):
-            if _objective(tried[2], k, loss, problems[i]) < _objective(best_diag, i, loss, problems[i]):
+            if (_objective(tried[2], k, loss, problems[i], tried[0][k], free)
+                    < _objective(best_diag, i, loss, problems[i], best_theta[i], free)):
                 _adopt_row((best_theta, best_hist, best_diag), tried, i, k)
         floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     # The robust scale once more, from the best fit's residuals. The early fit may have
@@ -711,9 +743,27 @@ def _check_inputs(scene, data, fixed, ball_of=None) -> None:
                 raise ValueError(f"fixed release point of ball {b!r}: {err}") from None
 
 
-def _objective(diag, i, loss, problem):
+def _objective(diag, i, loss, problem, theta=None, free=()):
+    """The robust loss of key i's residuals, and of its priors at ``theta``."""
     r, _, (valid, _, _) = diag
-    return float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
+    out = float(np.sum(np.where(valid[i], robust_loss(r[i] / problem.scale, loss), 0.0)))
+    if theta is not None and problem.prior is not None:
+        phi = registry.to_physical(np.asarray(theta), free, problem.fixed)
+        out += float(np.sum(robust_loss(np.asarray(_prior_rows(phi, problem)) / problem.scale, loss)))
+    return out
+
+
+def _priors_of(scene: Scene, prior, free) -> dict[str, tuple[float, float]]:
+    """The priors a fit applies: those of ``registry.priors`` on the fitted parameters.
+
+    Raises:
+        ValueError: a prior given (not the scene's) on a parameter the fit holds.
+    """
+    given = [n for name, spec in (prior or {}).items() if spec is not None for n in registry.expand((name,))]
+    held = [n for n in given if n not in free]
+    if held:
+        raise ValueError(f"a prior on {held}, which this fit holds (not in free): fit it, or drop the prior")
+    return {n: v for n, v in registry.priors(scene, prior).items() if n in free}
 
 
 def _adopt_row(best, result, i, k) -> None:
@@ -855,6 +905,17 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
     dof = max(int(keep.sum()) - len(free), 1)
     s2 = float(np.sum(r_all[keep] ** 2) / dof)
     notes = []
+    # The priors as rows in the data's units (sqrt(s2) / sd on their parameter): with them
+    # J^T W J + Jp^T Jp is the posterior's information times s2.
+    weight = np.zeros(len(free)) if problem.prior is None else np.asarray(problem.prior[1])[registry.index(free)]
+    with_prior = weight > 0
+    sd_prior = np.divide(1.0, weight, out=np.full(len(free), np.inf), where=with_prior)
+    Jp = (np.eye(len(free)) * math.sqrt(s2) / np.where(with_prior, sd_prior, 1.0))[with_prior]
+    # The robust loss weighs the prior's rows as it weighs the data's.
+    u_prior = (np.zeros(0) if problem.prior is None else
+               np.asarray(_prior_rows(phi, problem))[registry.index(free)][with_prior] / float(problem.scale))
+    w_prior = np.asarray(robust_weight(u_prior, loss))
+    Jw = np.concatenate([Jw, Jp])
     col = np.linalg.norm(Jw, axis=0)
     scale_cols = np.where(col > 0, col, 1.0)
     Jn = Jw / scale_cols
@@ -874,23 +935,37 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
                 " (no bounce observed)" if registry.component(n).needs_bounce and not init.bounces else ""))
     stderr = {n: math.nan for n in free}
     corr = np.full((len(free), len(free)), np.nan)
-    ids = np.flatnonzero(identifiable)
+    # Every parameter that moves the model enters the covariance, those in a direction the
+    # data leave open too: the pseudo-inverse leaves that direction out, so that the
+    # identifiable parameters' errors count their correlation with what the data do fix of
+    # the others (dropping the others would hold them fixed and understate those errors).
+    ids = np.flatnonzero((col > 1e-9 * max(col.max(), 1e-300)) & ~at_bound) if identifiable.any() else np.zeros(0, int)
     if ids.size:
         try:
             # Sandwich form of the weighted least-squares covariance: A^-1 B A^-1 with
             # A = J^T W J, B = J^T W^2 J (Huber 1967); for inliers (W ~ 1) it is s^2 (J^T J)^-1.
-            Jr = J[:, ids] * valid_np[:, None]
-            A = Jr.T @ (w[:, None] * Jr)
-            B = Jr.T @ ((w**2)[:, None] * Jr)
-            Ainv = np.linalg.inv(A)
-            cov = s2 * Ainv @ B @ Ainv
+            Jr = J[:, ids] * valid_np[:, None] / scale_cols[ids]
+            Jq = Jp[:, ids] / scale_cols[ids]
+            A = Jr.T @ (w[:, None] * Jr) + Jq.T @ (w_prior[:, None] * Jq)
+            B = Jr.T @ ((w**2)[:, None] * Jr) + Jq.T @ ((w_prior**2)[:, None] * Jq)
+            Ainv = np.linalg.pinv(A, rcond=1e-12, hermitian=True)
+            cov = s2 * (Ainv @ B @ Ainv) / np.outer(scale_cols[ids], scale_cols[ids])
             sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+            sd_safe = np.where(sd > 0, sd, 1.0)
             for a, k in enumerate(ids):
-                stderr[free[k]] = float(sd[a])
-            sub = cov / np.outer(sd, sd)
-            corr[np.ix_(ids, ids)] = sub
+                if identifiable[k]:
+                    stderr[free[k]] = float(sd[a])
+            sub = cov / np.outer(sd_safe, sd_safe)
+            known = identifiable[ids]
+            corr[np.ix_(ids[known], ids[known])] = sub[np.ix_(known, known)]
         except np.linalg.LinAlgError:
             notes.append("the Gauss-Newton matrix is singular: no standard errors")
+    prior = {n: (float(np.asarray(problem.prior)[0, registry.index((n,))[0]]), float(sd_prior[k]))
+             for k, n in enumerate(free) if with_prior[k]}
+    for n, (mean, sd) in prior.items():
+        if math.isfinite(stderr[n]) and stderr[n] > PRIOR_DECIDES * sd:
+            notes.append(f"{n} is held by its prior {mean:g} +- {sd:g} more than by the data (standard error "
+                         f"{stderr[n]:.3g}): the data say little about it")
     n_imp = int(impacts)
     unit = "m" if problem.cameras is None else "px"
     improvement = np.abs(np.diff(history[-4:])) if len(history) >= 4 else np.array([np.inf])
@@ -926,4 +1001,5 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
         model_position=np.asarray(pos)[:n],
         residuals=r_all.reshape(-1, 3)[:n],
         unit=unit,
+        prior=prior,
     )

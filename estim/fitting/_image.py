@@ -19,7 +19,9 @@ is the model at ``t + dt_camerak``).
    explains the pixels best (the least robust loss) is kept. The starting values come from
    the path's flights (:func:`start_values`: the release state, e and mu from the velocities
    at the first bounce, in air the spin from the first flight's curvature).
-2. **Fit.** Every fit's machinery (``estim.fitting._fit``) with the residuals in pixels.
+2. **Fit.** Every fit's machinery (``estim.fitting._fit``) with the residuals in pixels
+   and the scene's priors (``Scene.priors``: a few frames from one camera fix e and the
+   friction coefficient loosely, and a wrong e trades with the depth of the whole path).
    Every key runs every restart (``_fit_all(explore=True)``: e from a grid over its
    range), at its noise floor or not: a few frames of pixels read that floor poorly.
 3. **Depth.** Depth (along a camera's axis) is the direction the pixels fix worst. From the
@@ -48,12 +50,18 @@ from ._fit import FitResult, ImageRows, _fit_all
 from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
 from ._loss import robust_loss
 
-__all__ = ["DEPTH_LIMIT", "default_image_free", "fit_image"]
+__all__ = ["DEPTH_LIMIT", "RESTARTS", "default_image_free", "fit_image"]
 
 # A release point known to worse than this along the camera's axis (m) is "not fixed".
 DEPTH_LIMIT = 0.05
 # The largest spin a start takes from a flight's curvature (rad/s): beyond, noise.
 SPIN_START = 400.0
+# Restarts of every start (e from 0.3 and 0.9): on the views study of docs/pages/cameras.md,
+# with the table-tennis scene's prior on e, five changed no shot and none lost one (a
+# start that missed a bounce: 42 cm off). More iterations than the 30 of a run did harm
+# there: at 40 two shots of 16 ran off along the rays to a path 40-90 cm away that fits
+# 15 frames as well (the depth one camera leaves open).
+RESTARTS = 2
 # Starts per ball: the start paths with the bounces on different surfaces
 # (estim.tracks._reconstruct.reconstructions), fitted side by side; the best is kept.
 STARTS = 2
@@ -73,7 +81,7 @@ def default_image_free(scene: Scene, n_cameras: int) -> tuple[str, ...]:
 
 
 def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss: str = "cauchy", steps: int = 30,
-              restarts: int = 5, max_segments: int = 48,
+              restarts: int = RESTARTS, max_segments: int = 48, prior=None,
               progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit every ball of image tracks (module docstring).
 
@@ -82,7 +90,12 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         tracks: the pixels and their cameras (``estim.read_image_tracks_csv``).
         free: the parameters to fit (registry names); default :func:`default_image_free`.
         fixed: per ball, values to hold (or start from); as :func:`estim.fit`.
-        loss, steps, restarts, max_segments, progress: as :func:`estim.fit`.
+        restarts: restarts of every start, e from a grid over its range (default
+            ``RESTARTS``).
+        loss, steps, max_segments, prior, progress: as :func:`estim.fit` (the
+            scene's priors apply unless ``prior`` drops them: a few frames from one camera
+            leave e and the friction coefficient loosely fixed, and what is known of the
+            ball keeps them, and with them the path's depth, where they belong).
 
     Returns:
         A :class:`estim.FitResult` whose balls' residuals are in pixels (``unit == "px"``:
@@ -127,7 +140,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     given = fixed or {}
     fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
     every, _ = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
-                        max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True)
+                        max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True,
+                        prior=prior)
     result = FitResult({b: every.balls[_best(every, b)] for b in tracks.balls})
     for b, bf in result.balls.items():
         bf.ball = b
@@ -212,11 +226,13 @@ def _key(ball: str, j: int) -> str:
 
 def _best(result: FitResult, ball: str) -> str:
     """The key of ``ball``'s start whose fit explains its pixels best: the least robust
-    loss of its residuals at the pixels' noise level (the same scale for every start)."""
+    loss of its residuals at the pixels' noise level (the same scale for every start), and
+    of its priors."""
 
     def loss(key):
         bf = result.balls[key]
-        u = bf.residuals / bf.noise_m
+        u = np.concatenate([bf.residuals.ravel() / bf.noise_m,
+                            [(bf.values[n] - m) / sd for n, (m, sd) in bf.prior.items()]])
         return float(np.sum(robust_loss(u, "cauchy"))) if np.all(np.isfinite(u)) else np.inf
 
     return min((_key(ball, j) for j in range(STARTS)), key=loss)

@@ -8,7 +8,9 @@ ball across all clips. The pipeline:
 
 1. **One by one**: every unit is fitted alone (:func:`estim.fit`, all units in one batched
    program, with its restarts for units above their noise floor). This gives each unit's
-   start and its robust scale ``s_i`` (its noise level).
+   start and its robust scale ``s_i`` (its noise level). No priors, the scene's included
+   (``Scene.priors``): many clips fix what one cannot, and a prior on a shared value
+   counted once per clip would weigh as many times too much.
 2. **Together**: Levenberg-Marquardt on ``sum_i sum_k rho(r_ik / s_i)`` over the shared
    values ``a`` (per ball) and every unit's own values ``b_i``. The Jacobian of unit i is
    ``[A_i | B_i]`` (its residuals depend on a and b_i only), so the damped normal equations
@@ -393,7 +395,7 @@ def fit_clips(
     individual, units = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps,
                                  restarts=restarts, max_segments=max_segments, progress=say,
                                  balls={c.label: c.ball for c in clips}, anchors={c.label: c.anchor for c in clips},
-                                 devices=devices)
+                                 devices=devices, prior={name: None for name, *_ in scene.priors})
     free = units.free
     shared_idx = tuple(free.index(n) for n in shared)
     local_idx = tuple(k for k in range(len(free)) if k not in shared_idx)

@@ -58,7 +58,8 @@ from ._loss import array_namespace
 
 __all__ = [
     "AbstractTransform", "Exp", "Identity", "MAX_CAMERAS", "NAMES", "Parameter", "REGISTRY", "Sigmoid", "acting",
-    "check_acting", "component", "default_free", "defaults", "describe", "expand", "index", "pack", "shown", "slopes",
+    "check_acting", "component", "default_free", "defaults", "describe", "expand", "index", "pack", "prior_arrays",
+    "priors", "shown", "slopes",
     "starting_values", "to_params", "to_physical", "to_theta", "unpack", "value", "values_for",
     "with_values",
 ]
@@ -405,6 +406,52 @@ def to_theta(phi, free: tuple[str, ...]):
 def slopes(phi, free: tuple[str, ...]) -> np.ndarray:
     """``d phi_k / d theta_k`` for the components ``free`` at phi (NumPy)."""
     return np.array([component(n).transform.slope(value(phi, n)) for n in free], dtype=np.float64)
+
+
+def priors(scene: Scene, given: Mapping[str, Any] | None = None) -> dict[str, tuple[float, float]]:
+    """The priors of a fit: ``component -> (mean, standard deviation)``, the scene's
+    (``Scene.priors``, as its MJCF file declares them) updated by ``given`` (a name, or a
+    vector's name for all its components, to ``(mean, sd)``, or to ``None`` to drop the
+    scene's prior on it).
+
+    Raises:
+        ValueError: an unknown name, a standard deviation that is not a positive finite
+            number, or a mean outside the parameter's range (each message names it).
+    """
+    out: dict[str, tuple[float, float]] = {}
+    for source, items in (("the scene's", [(n, (m, sd)) for n, m, sd in scene.priors]),
+                          ("the", list((given or {}).items()))):
+        for name, spec in items:
+            try:
+                names = expand((name,))
+            except ValueError as err:
+                raise ValueError(f"{source} prior on {name!r}: {err}") from None
+            if spec is None:
+                for c in names:
+                    out.pop(c, None)
+                continue
+            try:
+                mean, sd = (float(v) for v in spec)
+            except (TypeError, ValueError):
+                raise ValueError(f"{source} prior on {name!r} must be (mean, standard deviation), got {spec!r}") from None
+            if not (math.isfinite(mean) and math.isfinite(sd) and sd > 0):
+                raise ValueError(f"{source} prior on {name!r} = ({mean}, {sd}): the mean must be finite and "
+                                 "the standard deviation a positive finite number")
+            for c in names:
+                why = component(c).transform.refuse(mean)
+                if why:
+                    raise ValueError(f"{source} prior on {c!r}: its mean {mean} {why}")
+                out[c] = (mean, sd)
+    return out
+
+
+def prior_arrays(priors_: Mapping[str, tuple[float, float]]) -> np.ndarray:
+    """``(2, len(NAMES))``: the priors' means and inverse standard deviations in the order
+    of phi (weight 0 where a component has no prior)."""
+    out = np.zeros((2, len(NAMES)))
+    for n, (mean, sd) in priors_.items():
+        out[:, _INDEX[n]] = mean, 1.0 / sd
+    return out
 
 
 def defaults(ball: Ball) -> dict[str, float]:

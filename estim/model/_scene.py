@@ -60,6 +60,16 @@ A scene declares its *contact law* the same way (``estim.forward.laws``; ``Scene
 that declares none; ``"friction"`` is Coulomb friction at the contact point, with spin
 (restitution e, friction coefficient mu; ``estim.forward.laws.FrictionLaw``).
 
+A scene may declare what is known of a fit's parameters before any data: a Gaussian
+*prior* per parameter (its registry name, ``estim.fitting._registry``), its mean and
+standard deviation. The table-tennis scene declares the restitution and friction of a
+table-tennis ball on a table, from the literature::
+
+    <custom><numeric name="estim:prior:e" data="0.9 0.05"/></custom>
+
+A fit takes the scene's priors unless told otherwise (``estim.fit(..., prior=...)``,
+``estim fit --prior``); a scene that declares none adds nothing to any fit.
+
 A piece that lies inside a plane's half-space for every radius (the bottom of a tread
 standing on the ground, and its bottom edges and corners) can never be reached and is
 dropped when the scene is built; this is exact, not an approximation.
@@ -90,6 +100,8 @@ GEOMETRY_TEXT = "estim:geometry"
 # class), and the <custom><text> name under which it does.
 LAWS = ("factor", "friction")
 LAW_TEXT = "estim:law"
+# The MJCF <custom><numeric> name prefix under which a scene declares a fit parameter's prior.
+PRIOR_NUMERIC = "estim:prior:"
 
 
 class Ball(NamedTuple):
@@ -143,6 +155,9 @@ class Scene(eqx.Module):
             MJCF file declares it: the laws are defined after the scene, in
             ``estim.forward``), or ``None`` for the seed's factor law
             (``estim.forward.laws.FactorLaw``: e and mu_t).
+        priors: static: what is known of the fit's parameters before any data, as the MJCF
+            file declares it: ``(name, mean, standard deviation)`` per parameter (module
+            docstring; ``estim.fitting._registry.prior_arrays`` reads them).
     """
 
     box_centre: Float[Array, "boxes 3"]
@@ -157,6 +172,7 @@ class Scene(eqx.Module):
     air: Air | None = None
     law: object = eqx.field(static=True, default=None)
     geometry: str = eqx.field(static=True, default="exact")
+    priors: tuple[tuple[str, float, float], ...] = eqx.field(static=True, default=())
 
     @property
     def n_boxes(self) -> int:
@@ -183,12 +199,16 @@ class Scene(eqx.Module):
         """The same scene with another contact law (``None``: the seed's factor law)."""
         return dataclasses.replace(self, law=law)
 
+    def with_priors(self, priors) -> Scene:
+        """The same scene with other priors: ``(name, mean, standard deviation)`` each."""
+        return dataclasses.replace(self, priors=tuple((str(n), float(m), float(s)) for n, m, s in priors))
+
     def with_geometry(self, geometry: str) -> Scene:
         """The same scene with another contact geometry, ``"exact"`` or ``"seed"``."""
         return Scene.from_arrays(
             self._boxes(), self._planes(), gravity=float(self.gravity), balls=self.balls,
             air=self.air, geometry=geometry,
-        ).with_law(self.law)
+        ).with_law(self.law).with_priors(self.priors)
 
     def _boxes(self):
         return {n: (tuple(map(float, c)), tuple(map(float, h))) for n, c, h in
@@ -436,7 +456,26 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
     law = _declared(model, source, LAW_TEXT, LAWS, "contact law")
     return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls), air=air,
                              geometry=_declared(model, source, GEOMETRY_TEXT, GEOMETRIES, "contact geometry"),
-                             ).with_law(None if law == LAWS[0] else law)
+                             ).with_law(None if law == LAWS[0] else law).with_priors(_priors(model, source))
+
+
+def _priors(model, source: str) -> tuple[tuple[str, float, float], ...]:
+    """The priors an MJCF file declares: ``<numeric name="estim:prior:NAME" data="MEAN SD"/>``
+    in ``<custom>`` (module docstring). Which names a fit knows is the fit's to check."""
+    import mujoco
+
+    out = []
+    for i in range(model.nnumeric):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_NUMERIC, i) or ""
+        if not name.startswith(PRIOR_NUMERIC):
+            continue
+        start, size = int(model.numeric_adr[i]), int(model.numeric_size[i])
+        data = [float(v) for v in model.numeric_data[start:start + size]]
+        if len(data) != 2 or not all(map(math.isfinite, data)) or not data[1] > 0:
+            raise ValueError(f"{source}: <numeric name={name!r} data={data}> must hold two finite numbers, "
+                             "the prior's mean and its standard deviation (> 0)")
+        out.append((name.removeprefix(PRIOR_NUMERIC), data[0], data[1]))
+    return tuple(out)
 
 
 def _declared(model, source: str, text: str, choices: tuple[str, ...], what: str) -> str:

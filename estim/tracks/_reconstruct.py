@@ -30,6 +30,12 @@ with a Gaussian prior ``a_k ~ N(0, AIR_PRIOR^2)`` per component (a row ``a_k / A
 weighted like the flight's samples together): without it gravity's size would no longer fix the
 scale, and the bounce on a surface of known height would be the only thing that does.
 
+At a bounce on a surface, friction changes the velocity along the surface by at most
+``mu (1 + e) |v_n|``; a prior ``N(0, BOUNCE_PRIOR^2)`` per horizontal component on that
+change (one row each, weighted like the later flight's rows together, as the air's prior)
+ties the flight after a bounce to the flight before it. Without it a short flight seen nearly along its rays (four frames after
+the bounce, from behind) runs off along them, at tens of m/s.
+
 Bounces are read from the pixels themselves (:func:`estim.tracks._flights.flight_contacts`
 on the image coordinate along which the track bounces most clearly). The result is a
 start, not an estimate: drag, spin and the cameras' clock offsets are left to the fit.
@@ -63,6 +69,10 @@ AIR_PRIOR = 5.0
 # A box top narrower than this many ball radii (a net, a wall's top) is no bounce surface
 # for the start.
 NARROW = 4.0
+# The prior's standard deviation of the change of a bounce's velocity along the surface
+# (m/s): friction changes it by at most mu (1 + e) |v_n|, about 1 m/s for a table-tennis
+# ball at 4 m/s onto the table (mu 0.25, e 0.9).
+BOUNCE_PRIOR = 1.0
 
 
 @dataclass(frozen=True)
@@ -342,13 +352,24 @@ class _Rays:
         the flights' accelerations (:func:`_solve`) per row; its square root (rad)."""
         noise = self.noise if np.isfinite(self.noise) else float(np.median(miss))
         cost = np.sum(np.minimum(miss, _CUT * noise) ** 2)
-        if x is not None and x.size == 9 * (len(bounces) + 1):
+        if x is not None:
             refs, ends = self.refs(bounces), np.concatenate([bounces, [self.t.max()]])
             flight = np.searchsorted(np.asarray(bounces), self.t, side="right")
-            for f, u in enumerate(x.reshape(-1, 3, 3)):
-                off = u[2] - self.drag(u[1] + 0.5 * (self.g + u[2]) * (ends[f] - refs[f]))
-                cost += np.sum(flight == f) * noise**2 * np.sum(off**2) / AIR_PRIOR**2
+            flights = x.reshape(len(refs), -1, 3)
+            for f, u in enumerate(flights):
+                n = np.sum(flight == f)
+                if u.shape[0] == 3:
+                    off = u[2] - self.drag(u[1] + 0.5 * (self.g + u[2]) * (ends[f] - refs[f]))
+                    cost += n * noise**2 * np.sum(off**2) / AIR_PRIOR**2
+                if f > 0:
+                    slip = u[1] - self.velocity_at(flights[f - 1], bounces[f - 1] - refs[f - 1])
+                    cost += n * noise**2 * np.sum(slip[:2] ** 2) / BOUNCE_PRIOR**2
         return float(np.sqrt(cost / miss.size))
+
+    def velocity_at(self, unknowns, dt: float) -> np.ndarray:
+        """A flight's velocity ``dt`` after its reference time."""
+        a = self.g + (unknowns[2] if unknowns.shape[0] == 3 else 0.0)
+        return unknowns[1] + a * dt
 
 
 def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
@@ -420,6 +441,11 @@ def _viable(bounces: tuple[float, ...], t: np.ndarray) -> tuple[float, ...]:
     return tuple(bounces)
 
 
+def noise_of(rays: _Rays) -> float:
+    """The rays' noise (rad), 1 mrad where the pixels cannot tell."""
+    return rays.noise if np.isfinite(rays.noise) else 1e-3
+
+
 def _golden(f, lo, hi, iterations: int = 30) -> float:
     """The minimum of ``f`` on ``[lo, hi]`` by golden-section search."""
     r = (np.sqrt(5.0) - 1.0) / 2.0
@@ -469,9 +495,21 @@ def _solve(rays: _Rays, bounces, flight, keep, depth, heights, air, previous):
             a[0, m * (k + 1) + 2] = tie
             blocks.append(a)
             values.append(np.array([heights[k] * tie]))
+            # Friction changes the velocity along the surface by at most mu (1 + e) |v_n|:
+            # a prior on that change keeps a short flight after the bounce from running
+            # off along its rays, where its few pixels cannot hold it. Weighted like the
+            # flight's rows together, as the air's prior below.
+            w = noise_of(rays) / BOUNCE_PRIOR * np.sqrt(np.sum(flight[rows] == k + 1))
+            a = np.zeros((2, n))
+            a[:, m * (k + 1) + 3:m * (k + 1) + 5] = np.eye(2) * w
+            a[:, m * k + 3:m * k + 5] = -np.eye(2) * w
+            if m == 9:
+                a[:, m * k + 6:m * k + 8] = -np.eye(2) * w * dt
+            blocks.append(a)
+            values.append(rays.g[:2] * dt * w)
     if m == 9:
         # The prior on each flight's air acceleration, weighted like the flight's samples together.
-        noise = rays.noise if np.isfinite(rays.noise) else 1e-3
+        noise = noise_of(rays)
         ends = np.concatenate([bounces, [rays.t.max()]])
         for f in range(len(refs)):
             weight = noise / AIR_PRIOR * np.sqrt(np.sum(flight[rows] == f))
