@@ -220,10 +220,23 @@ def _(NOISE, SHOT, TRUTH, estim, np, scene, time):
         return w - np.dot(w, _u) * _u
 
     SPIN_ERROR = float(np.linalg.norm(across(fitted_spin) - across(TRUTH["spin"])) / np.linalg.norm(across(TRUTH["spin"])))
-    assert abs(bf.values["e"] - TRUTH["e"]) < 0.01 and abs(bf.values["mu"] - TRUTH["mu"]) < 0.03, bf.values
+    assert abs(bf.values["e"] - TRUTH["e"]) < 0.01, bf.values
+    # The topspin bounce grips: the data only bound mu from below, and the scene's prior
+    # (0.25 +- 0.1) holds it, as a note says. Then the true mu must move the fitted path by
+    # less than a tenth of the noise: the data cannot tell the two apart.
+    MU_HELD = any(_n.startswith("mu is held by its prior") for _n in bf.notes)
+    if MU_HELD:
+        _p = np.array([bf.values[k] for k in ("x0", "y0", "z0")])
+        _runs = [np.asarray(estim.simulate(scene, estim.Params.for_ball(
+            scene, "pingpong", e=bf.values["e"], mu_t=0.0, mu=_mu, position=_p,
+            velocity=np.array([bf.values[c] for c in ("vx0", "vy0", "vz0")]), spin=fitted_spin),
+            float(SHOT[0][-1]), ts=SHOT[0]).position) for _mu in (bf.values["mu"], TRUTH["mu"])]
+        assert np.max(np.linalg.norm(_runs[0] - _runs[1], axis=1)) < 0.1 * NOISE
+    else:
+        assert abs(bf.values["mu"] - TRUTH["mu"]) < 0.03, bf.values
     assert SPIN_ERROR < 0.1, SPIN_ERROR
     assert bf.at_noise_floor and abs(bf.noise_m / NOISE - 1) < 0.2, (bf.rms_m, bf.noise_m)
-    return FIT_S, SPIN_ERROR, bf, fit, fitted_spin
+    return FIT_S, MU_HELD, SPIN_ERROR, bf, fit, fitted_spin
 
 
 @app.cell
@@ -251,7 +264,7 @@ def _(NOISE, SHOT, bf, estim, jnp, np, scene, stack):
 
 
 @app.cell
-def _(EFFECTS, FIT_S, Figure, OUT, SHOT, SPIN_ERROR, TRUTH, bf, md_table, mo, np):
+def _(EFFECTS, FIT_S, Figure, MU_HELD, OUT, SHOT, SPIN_ERROR, TRUTH, bf, md_table, mo, np):
     _t, _obs = SHOT
     _model = np.asarray(bf.model_position)
     _fig = Figure(figsize=(10, 3.6), layout="tight")
@@ -283,6 +296,7 @@ def _(EFFECTS, FIT_S, Figure, OUT, SHOT, SPIN_ERROR, TRUTH, bf, md_table, mo, np
         bounce). The fit took {FIT_S:.0f} s with JAX's compile; rms {bf.rms_m * 1e3:.2f} mm.
         The spin across the flight is read to {SPIN_ERROR:.1%}; the part along the
         velocity does not bend the path and is only weakly fixed (by the bounce).
+        {"The topspin bounce grips: the data only bound mu from below, and the scene's prior on mu (0.25 ± 0.1, declared in `data/scenes/table_tennis.xml`) holds it; the true mu moves the fitted path by less than a tenth of the noise." if MU_HELD else ""}
         """),
         md_table(["parameter", "truth", "fitted ± standard error"], _rows),
         mo.md("""
@@ -299,13 +313,13 @@ def _(EFFECTS, FIT_S, Figure, OUT, SHOT, SPIN_ERROR, TRUTH, bf, md_table, mo, np
 
 
 @app.cell
-def _(EDGE_HEIGHT, EFFECTS, FIT_S, OUT, SPIN_ERROR, START, bf, bounces, json, time):
+def _(EDGE_HEIGHT, EFFECTS, FIT_S, MU_HELD, OUT, SPIN_ERROR, START, bf, bounces, json, time):
     summary = {"bounce_t": {n: b[0] for n, b in bounces.items()},
                "after_vy": {n: float(b[3][1]) for n, b in bounces.items()},
                "edge": {"position": [float(x) for x in bounces["edge ball"][1]],
                         "normal": [float(x) for x in bounces["edge ball"][4]], "height": EDGE_HEIGHT},
-               "fit": {"e": bf.values["e"], "mu": bf.values["mu"], "rms_m": bf.rms_m, "spin_error": SPIN_ERROR,
-                       "fit_s": FIT_S},
+               "fit": {"e": bf.values["e"], "mu": bf.values["mu"], "mu_held_by_prior": MU_HELD, "rms_m": bf.rms_m,
+                       "spin_error": SPIN_ERROR, "fit_s": FIT_S},
                "effects": EFFECTS, "total_s": time.perf_counter() - START}
     (OUT / "06_table_tennis.json").write_text(json.dumps(summary, indent=1))
     print("06_table_tennis:", json.dumps(summary))
