@@ -103,9 +103,6 @@ def test_bad_priors_are_refused(prior, words):
 def test_a_prior_on_a_held_parameter_is_refused(stairs, data):
     with pytest.raises(ValueError, match=r"a prior on \['vz0'\], which this fit holds"):
         estim.fit(stairs, data, prior={"vz0": (0.0, 1.0)})
-    # The scene's own priors on what a fit holds are simply not used.
-    table = estim.load_scene(TABLE)
-    assert "mu" in dict((n, m) for n, m, _ in table.priors)
 
 
 def test_cli_prior(tmp_path, capsys):
