@@ -208,7 +208,7 @@ def _(BALL, estim, np, scene):
 @app.cell
 def _(NOISE, SHOT, TRUTH, estim, np, scene, time):
     _t0 = time.perf_counter()
-    fit = estim.fit(scene, {"pingpong": SHOT})
+    fit = estim.fit(scene, {"pingpong": SHOT}, effects=True)
     FIT_S = time.perf_counter() - _t0
     bf = fit.balls["pingpong"]
     fitted_spin = np.array([bf.values[f"spin_{c}"] for c in "xyz"])
@@ -240,26 +240,14 @@ def _(NOISE, SHOT, TRUTH, estim, np, scene, time):
 
 
 @app.cell
-def _(NOISE, SHOT, bf, estim, jnp, np, scene, stack):
-    # The effect sizes of the fitted shot: how far each effect moves the fitted ball over
-    # the track, in mm and in noise levels. Each is the fitted ball against the same ball
-    # without that effect, all four in one batch (the same compiled program as above).
-    _t = SHOT[0]
-    _p = np.array([bf.values[c] for c in ("x0", "y0", "z0")])
-    _v = np.array([bf.values[c] for c in ("vx0", "vy0", "vz0")])
-    _w = np.array([bf.values[f"spin_{c}"] for c in "xyz"])
-    _rows = [estim.Params.for_ball(scene, "pingpong", e=bf.values["e"], mu_t=0.0, mu=bf.values["mu"], position=_p, velocity=_v,
-                                   spin=_w, drag_coefficient=dc, lift_factor=lf)
-             for dc, lf in ((0.47, 1.0), (0.0, 1.0), (0.47, 0.0))]
-    _rows.append(estim.Params.for_ball(scene, "pingpong", e=bf.values["e"], mu_t=0.0, mu=bf.values["mu"], position=_p,
-                                       velocity=_v, spin=np.zeros(3), lift_factor=0.0))
-    _runs = estim.simulate(scene, stack(_rows), float(_t[-1]), ts=jnp.asarray(_t))
-    _pos = np.asarray(_runs.position)
-    EFFECTS = {}
-    for _k, _name in ((1, "quadratic drag"), (2, "Magnus"), (3, "spin at the bounce")):
-        _ref = _pos[2] if _name == "spin at the bounce" else _pos[0]
-        _d = float(np.max(np.linalg.norm(_pos[_k] - _ref, axis=1)))
-        EFFECTS[_name] = {"max_mm": _d * 1e3, "noise_levels": _d / NOISE}
+def _(bf):
+    # The effect sizes of the fitted shot (`estim.fit(..., effects=True)`, `estim fit
+    # --effects`): how far each effect of the model moves the fitted ball over the track, the
+    # fitted ball against the same ball without it, in mm and in noise levels (the noise the
+    # fit read from the data).
+    EFFECTS = {_m["effect"]: {"max_mm": _m["max_deviation_mm"], "noise_levels": _m["noise_levels"],
+                              "switched_off": _m["switched_off"], "verdict": _m["verdict"]}
+               for _m in bf.effects}
     return (EFFECTS,)
 
 
@@ -283,7 +271,8 @@ def _(EFFECTS, FIT_S, Figure, MU_HELD, OUT, SHOT, SPIN_ERROR, TRUTH, bf, md_tabl
              ["mu", f"{TRUTH['mu']:.3f}", f"{bf.values['mu']:.3f} ± {bf.stderr['mu']:.3f}"]]
     _rows += [[f"spin_{c}", f"{TRUTH['spin'][i]:.0f}", f"{bf.values[f'spin_{c}']:.0f} ± {bf.stderr[f'spin_{c}']:.0f}"]
               for i, c in enumerate("xyz")]
-    _effects = [[n, f"{v['max_mm']:.1f}", f"{v['noise_levels']:.0f}"] for n, v in EFFECTS.items()]
+    _effects = [[n, v["switched_off"], f"{v['max_mm']:.1f}", f"{v['noise_levels']:.3g}", v["verdict"]]
+                for n, v in EFFECTS.items()]
     mo.vstack([
         mo.md(f"""
         ## A 3D shot, fitted
@@ -300,13 +289,17 @@ def _(EFFECTS, FIT_S, Figure, MU_HELD, OUT, SHOT, SPIN_ERROR, TRUTH, bf, md_tabl
         """),
         md_table(["parameter", "truth", "fitted ± standard error"], _rows),
         mo.md("""
-        **What the data can tell apart.** Each effect's size is the largest distance
-        between the fitted ball and the same ball without that effect, over the track, in
-        noise levels: drag (C_D = 0), Magnus (lift factor 0), and the spin's effect at the
-        bounce (no spin at all against spin without Magnus). An effect of many noise levels
-        is one the data pins down; one below a noise level is not identifiable from it.
+        **What the data can tell apart** (`estim.fit(..., effects=True)`, `estim fit
+        --effects`). Each effect's size is the largest distance between the fitted ball and
+        the same ball without that effect, over the track, in noise levels: quadratic drag
+        (C_D = 0), the air's viscosity (Stokes drag), Magnus (lift factor 0), the spin's
+        effect at the bounce (no spin at all against spin, both without Magnus) and the
+        bounce's friction (mu = 0). An effect of many noise levels is one the track
+        measures; one below a noise level is one it cannot tell from its absence. (A large
+        effect does not make its coefficient identifiable: mu = 0 changes this bounce a lot,
+        but any mu above the grip threshold gives the same bounce.)
         """),
-        md_table(["effect", "moves the ball by [mm]", "noise levels"], _effects),
+        md_table(["effect", "switched off", "moves the ball by [mm]", "noise levels", "verdict"], _effects),
         mo.image(str(OUT / "06_fit.png")),
     ])
     return

@@ -316,3 +316,54 @@ def test_simulate_json_events_carry_the_normal_and_the_velocity_after(capsys):
     v = np.array([ev["vx"], ev["vy"], ev["vz"]])
     after = mu * (v - (v @ n) * n) - e * (v @ n) * n
     np.testing.assert_allclose([ev["after"][k] for k in ("vx", "vy", "vz")], after, rtol=0, atol=1e-12)
+
+
+def test_simulate_json_events_carry_the_spin_before_and_after(capsys):
+    """A table-tennis ball with backspin and sidespin bounces on the table and hits the net
+    (the friction law, in air): each event carries the spin before and after it. The spin
+    before the first event is the release spin, and before each later one the spin after
+    the one before (constant in flight); each impact keeps the angular momentum about the
+    contact point, ``alpha r w + n x v`` per unit m r (the impulse acts at that point); on
+    the table the slip ``v_t - r w x n`` keeps its direction. On the closed-form path (the
+    seed's staircase) events carry no spin."""
+    table = str(SCENES / "table_tennis.xml")
+    spin = np.array([-100.0, 0.0, 20.0])
+    out = subprocess.run([sys.executable, "-m", "estim", "simulate", "--scene", table, "--ball", "pingpong",
+                          "--vx0", "0.9", "--vy0", "4", "--vz0", "1", "--spin-x", str(spin[0]), "--spin-y", "0",
+                          "--spin-z", str(spin[2]), "--t-end", "0.8", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    events = json.loads(out.stdout)["events"]
+    assert [(ev["surface"], ev["kind"]) for ev in events[:2]] == [("table", "impact"), ("net", "impact")]
+    ball = estim.Params.for_ball(estim.load_scene(table), "pingpong", e=0.88, mu_t=0.0)
+    alpha, r = float(ball.inertia), float(ball.radius)
+    before = spin
+    for ev in events:
+        w = np.array([ev[k] for k in ("wx", "wy", "wz")])
+        w_after = np.array([ev["after"][k] for k in ("wx", "wy", "wz")])
+        v = np.array([ev[k] for k in ("vx", "vy", "vz")])
+        v_after = np.array([ev["after"][k] for k in ("vx", "vy", "vz")])
+        n = np.array(ev["normal"])
+        np.testing.assert_allclose(w, before, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(alpha * r * w_after + np.cross(n, v_after), alpha * r * w + np.cross(n, v),
+                                   rtol=0, atol=1e-12)
+        before = w_after
+    first = events[0]
+    n = np.array(first["normal"])
+    slip = [np.array([ev[k] for k in ("vx", "vy", "vz")]) - r * np.cross([ev[k] for k in ("wx", "wy", "wz")], n)
+            for ev in (first, first["after"])]
+    slip = [s - (s @ n) * n for s in slip]
+    # (Shrunk along itself, to zero where the ball grips, as here.)
+    assert np.linalg.norm(slip[1]) < np.linalg.norm(slip[0])
+    assert slip[1] @ slip[0] >= -1e-12 and np.linalg.norm(np.cross(slip[1], slip[0])) < 1e-9 * np.linalg.norm(slip[0])
+    assert main(["simulate", "--ball", "golf", "--json"]) == 0
+    seed = json.loads(capsys.readouterr().out)["events"]
+    assert seed and not any("wx" in ev or "wx" in ev["after"] for ev in seed)
+
+
+def test_effects_under_the_friction_law_points_to_fit_effects(capsys):
+    """``estim effects`` compares against the seed law's closed-form vacuum, which a scene
+    under the friction law has not: refused, with the command that sizes its effects."""
+    assert main(["effects", "--scene", str(SCENES / "table_tennis.xml")]) == 2
+    err = capsys.readouterr().err
+    assert "FrictionLaw" in err and "estim fit TRACK --effects" in err

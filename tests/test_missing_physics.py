@@ -18,12 +18,15 @@ import estim
 from estim.fitting._missing_physics import (
     EXPLAINS,
     SPREAD,
+    format_effects,
     format_note,
     held_coefficients,
     missing_physics,
+    model_effects,
 )
 
 DROP_XML = ROOT / "data" / "scenes" / "drop.xml"
+TABLE_XML = ROOT / "data" / "scenes" / "table_tennis.xml"
 G = 9.81
 C_D = 0.47
 
@@ -171,3 +174,72 @@ def test_a_held_lift_factor_is_probed_only_for_a_spinning_ball(drop):
     assert held_coefficients(drop, spinning, 1.0, 1e-3, "pingpong") == []
     with pytest.raises(ValueError, match="among"):
         held_coefficients(air, spinning, 1.0, 1e-3, "pingpong", ("e",))
+
+
+def _shot(scene, mu, spin=(0.0, 0.0, 0.0)):
+    """A ping-pong ball thrown along +y at 3 m/s from 0.3 m over the table (its top at z = 0),
+    bouncing once on it at t_b = sqrt(2 h / g), h = 0.3 - r, with impact speed g t_b."""
+    ball = estim.Params.for_ball(scene, "pingpong", e=0.88, mu_t=0.0, mu=mu, position=(0.0, -1.3, 0.3),
+                                 velocity=(0.0, 3.0, 0.0), spin=spin)
+    t_b = math.sqrt(2 * (0.3 - float(ball.radius)) / G)
+    return ball, t_b
+
+
+def test_the_bounce_effects_in_a_vacuum_are_garwins_closed_forms():
+    """In a vacuum under the friction law, the effects the model has are the bounce's. A
+    ball without spin sliding through its bounce (mu (1 + e) v_n < alpha / (1 + alpha) v_t)
+    loses ``mu (1 + e) v_n`` of its speed along the table there (Garwin 1969), and nothing
+    else differs from a frictionless bounce until the next one: the largest deviation over a
+    span T is that loss times (T - t_b). Backspin that keeps it sliding the same way
+    (the slip ``v_t - r w x n`` along v_t) changes nothing of its motion (the sliding impulse
+    has the slip's direction, not its size): the spin's effect at the bounce is 0; topspin
+    that makes it grip does change it."""
+    scene = estim.load_scene(TABLE_XML).with_air(None)
+    g = float(scene.gravity)
+    mu, e, noise = 0.1, 0.88, 1e-3
+    ball, t_b = _shot(scene, mu)
+    v_n = g * t_b
+    alpha = float(ball.inertia)
+    assert mu * (1 + e) * v_n < alpha / (1 + alpha) * 3.0  # it slides
+    t_span = t_b + 0.15  # before the second bounce (after 2 e v_n / g = 0.42 s)
+    (entry,) = model_effects(scene, ball, t_span, noise)
+    assert (entry["effect"], entry["switched_off"]) == ("friction at the bounce", "mu = 0")
+    lost = mu * (1 + e) * v_n
+    assert entry["max_deviation_mm"] == pytest.approx(lost * (t_span - t_b) * 1e3, rel=1e-6)
+    assert entry["noise_levels"] == pytest.approx(lost * (t_span - t_b) / noise, rel=1e-6)
+    assert entry["verdict"] == "measured"
+
+    back, _ = _shot(scene, mu, spin=(20.0, 0.0, 0.0))  # slip 3 + 20 r > 0 along +y: slides
+    spin, friction = model_effects(scene, back, t_span, noise)
+    assert spin["effect"] == "spin at the bounce" and friction["effect"] == "friction at the bounce"
+    assert spin["max_deviation_mm"] < 1e-9 and spin["verdict"] == "below the noise"
+    top, _ = _shot(scene, 0.5, spin=(-140.0, 0.0, 0.0))  # slip 3 - 140 r = 0.2 m/s: it grips
+    spin, _ = model_effects(scene, top, t_span, noise)
+    assert spin["verdict"] == "measured"
+    line = format_effects([spin, {**friction, "noise_levels": 0.4, "verdict": "below the noise"}])
+    assert line.startswith("effects, in noise levels over the track: spin at the bounce ")
+    assert line.endswith("friction at the bounce 0.4 (below the noise: this track cannot tell it from its absence)")
+
+
+def test_the_effects_of_a_shot_in_air():
+    """In the table-tennis scene's still air, a spinning shot has all five effects; the
+    seed's law in a vacuum has none; the quadratic drag's size is its closed form over a
+    short span before the bounce, where the bounce's friction does nothing yet (a ball released at rest, no viscosity: the drop's lag
+    ``g T^2 / 2 - ln(cosh(T sqrt(g k))) / k``)."""
+    table = estim.load_scene(TABLE_XML)
+    ball, t_b = _shot(table, 0.2, spin=(-50.0, 0.0, 10.0))
+    names = [m["effect"] for m in model_effects(table, ball, 0.5, 2e-3)]
+    assert names == ["quadratic drag", "linear drag", "Magnus", "spin at the bounce", "friction at the bounce"]
+    assert model_effects(estim.load_scene(DROP_XML), _ball(estim.load_scene(DROP_XML)), 0.5, 1e-3) == []
+
+    rho = float(table.air.density)
+    still = table.with_air(estim.Air(rho, 0.0))
+    drop = dataclasses.replace(ball, velocity=ball.velocity * 0.0, spin=ball.spin * 0.0)
+    t_span = 0.2
+    entry, friction = model_effects(still, drop, t_span, 1e-3)
+    assert friction["effect"] == "friction at the bounce" and friction["max_deviation_mm"] == 0.0  # no bounce yet
+    r, m = float(drop.radius), float(drop.mass)
+    k = rho * float(drop.drag_coefficient) * math.pi * r**2 / (2 * m)
+    lag = G * t_span**2 / 2 - math.log(math.cosh(t_span * math.sqrt(G * k))) / k
+    assert entry["effect"] == "quadratic drag"
+    assert entry["max_deviation_mm"] == pytest.approx(lag * 1e3, rel=1e-6)

@@ -155,6 +155,16 @@ def _write_csv(path, clip):
             f.write(f"{t:.4f},{clip.ball},{p[0]:.6f},{p[2]:.6f}\n")
 
 
+def test_cli_refuses_what_one_track_needs_with_shared(tmp_path, capsys):
+    """``--shared`` fits many clips: a prior (counted once per clip) and the effect sizes
+    (those of one track) are refused, with a message that says so."""
+    path = tmp_path / "c.csv"
+    path.write_text("t,ball,x,z\n0,pingpong,0,0.3\n")
+    for flag, words in ((["--prior", "e=0.8,0.1"], "takes no priors"), (["--effects"], "those of one track")):
+        assert main(["fit", str(path), str(path), "--scene", DROP, "--shared", "e", *flag]) == 2
+        assert words in capsys.readouterr().err
+
+
 def test_cli_fits_files_together(tmp_path, capsys):
     """``estim fit A B C --shared e --json --out``: the shared e near the truth, per clip
     what a single fit gives, fit.json and the forest plot written."""

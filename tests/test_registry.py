@@ -144,12 +144,14 @@ def test_params_fields_from_the_registry():
 def test_what_acts_follows_the_law_and_the_air():
     """The law's coefficients act where its ``coefficients`` reads them (traced, not
     declared); the spin acts in air or under a law that couples it; a fit refuses what does
-    not act, naming where it would; the default fit follows the law."""
-    assert estim.FrictionLaw().reads() == {"e", "mu", "radius", "inertia"}
+    not act, naming where it would; the default fit follows the law (an opt-in entry, the
+    restitution's slope, only where asked)."""
+    assert estim.FrictionLaw().reads() == {"e", "mu", "radius", "inertia", "e_slope"}
     drop, table = estim.load_scene(DROP), estim.load_scene(TABLE)
     assert {"e", "mu_t"} <= registry.acting(drop) and not {"mu", "spin_x", "drag_coefficient"} & registry.acting(drop)
     assert {"e", "mu", "spin_x", "spin_z", "drag_coefficient", "lift_factor"} <= registry.acting(table)
-    assert "mu_t" not in registry.acting(table)
+    assert "mu_t" not in registry.acting(table) and "e_slope" in registry.acting(table)
+    assert "e_slope" not in registry.acting(drop)
     vacuum_table = table.with_air(None)
     assert {"mu", "spin_y"} <= registry.acting(vacuum_table) and "drag_coefficient" not in registry.acting(vacuum_table)
     with pytest.raises(ValueError, match=r"mu_t acts only under a contact law that reads it"):

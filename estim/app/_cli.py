@@ -188,6 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "standard deviation (e.g. e=0.88,0.05; a vector's name for each component), "
                           "or NAME=none to drop the scene's prior on it; repeatable. The scene's priors "
                           "(<numeric name=\"estim:prior:NAME\">) apply unless dropped")
+    fit.add_argument("--effects", action="store_true",
+                     help="also say how far each effect of the model (drag, Magnus, wind, the spin at "
+                          "the bounce, the bounce's friction) moves the fitted ball over the track, in "
+                          "noise levels: what this track can and cannot tell apart")
     fit.add_argument("--shared", nargs="+", default=None, metavar="PARAM",
                      choices=registry.NAMES + tuple(p.name for p in registry.REGISTRY if p.components != (p.name,)),
                      help="with several files: the parameters shared by every clip of a ball (e.g. "
@@ -532,7 +536,9 @@ def _cmd_effects(args) -> int:
     if law.couples_spin:
         raise UsageError(f"{scene_path}: estim effects compares each effect against the closed-form vacuum "
                          f"run of the seed's factor law; this scene's {type(law).__name__} couples the "
-                         "bounce to the spin and has no such baseline")
+                         "bounce to the spin and has no such baseline; for a track in this scene, "
+                         "estim fit TRACK --effects sizes every effect of the model (drag, Magnus, the "
+                         "spin at the bounce, the bounce's friction) in noise levels")
     if not scene.balls:
         raise UsageError(f"{scene_path}: the scene defines no balls (spheres on free bodies)")
     names = list(dict.fromkeys(args.ball)) if args.ball else [b.name for b in scene.balls]
@@ -630,10 +636,13 @@ def _cmd_replay(args) -> int:
 def _also(args, base) -> dict:
     """``free=`` for the fit when --also asks for more parameters (registry names; a
     vector's name stands for its components), else nothing (the fit's default), and
-    ``prior=`` when --prior gives priors. ``base``: the default to add them to, or a scene
+    ``prior=`` when --prior gives priors, ``effects=True`` with --effects. ``base``: the
+    default to add them to, or a scene
     (its default, ``registry.default_free``; the lateral release state joins it where the
     tracks have y, as in ``estim.fit``)."""
     out = {"prior": _priors(args.prior)} if getattr(args, "prior", None) else {}
+    if getattr(args, "effects", False):
+        out["effects"] = True
     if not getattr(args, "also", None):
         return out
     if not isinstance(base, tuple):
@@ -783,6 +792,9 @@ def _cmd_fit(args) -> int:
         if args.prior:
             raise UsageError("--prior with --shared: a fit of several clips takes no priors (the scene's are "
                              "dropped too: many clips fix what one cannot); fit one file to use a prior")
+        if args.effects:
+            raise UsageError("--effects with --shared: the effect sizes are those of one track; fit one file "
+                             "to see them")
         return _cmd_fit_clips(args, scene, say)
     for flag in ("devices", "distributed"):
         if getattr(args, flag):

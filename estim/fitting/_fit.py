@@ -62,7 +62,14 @@ from . import _registry as registry
 from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start, spin_start
 from ._levenberg_marquardt import levenberg_marquardt
 from ._loss import ROBUST_LOSSES, robust_loss, robust_weight
-from ._missing_physics import HELD, format_note, held_coefficients, missing_physics
+from ._missing_physics import (
+    HELD,
+    format_effects,
+    format_note,
+    held_coefficients,
+    missing_physics,
+    model_effects,
+)
 from ._sharding import gather, mesh_of, padded_size, place
 
 __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
@@ -263,6 +270,7 @@ class BallFit:
     unit: str = "m"  # of the residuals: "m" (tracks in metres) or "px" (image tracks, estim.fit_image)
     depth: dict | None = None  # image tracks: how well the pixels fix the path's depth (estim.fitting._image)
     prior: dict[str, tuple[float, float]] = field(default_factory=dict)  # the priors applied: (mean, sd)
+    effects: list[dict] | None = None  # what each effect of the model does over the track (fit(effects=True))
 
     def to_json(self) -> dict:
         """The values by their registry names (those that act in the fit's scene), the
@@ -291,6 +299,8 @@ class BallFit:
             out["depth"] = self.depth
         if self.prior:
             out["prior"] = {n: {"mean": m, "sd": sd} for n, (m, sd) in self.prior.items()}
+        if self.effects is not None:
+            out["effects"] = self.effects
         return out
 
 
@@ -333,6 +343,8 @@ class FitResult:
                 f"{bf.rms_m * (1.0 if bf.unit == 'px' else 1e3):9.2f} {bf.n_obs:5d} {bf.n_bounces:7d}  {status}"
             )
             rows.extend(f"{'':<10} note: {n}" for n in bf.notes)
+            if bf.effects:
+                rows.append(f"{'':<10} {format_effects(bf.effects)}")
         return "\n".join(rows)
 
 
@@ -350,6 +362,7 @@ def fit(
     balls: dict[str, str] | None = None,
     anchors: dict[str, tuple[float, float, float]] | None = None,
     prior: dict[str, tuple[float, float] | None] | None = None,
+    effects: bool = False,
 ) -> FitResult:
     """Fit every ball of a data set.
 
@@ -392,6 +405,11 @@ def fit(
             loss as the data (Gaussian under ``"l2"``, heavy-tailed under ``"cauchy"``);
             the standard errors are then the posterior's. A scene's prior on a parameter
             the fit holds is not used; a given one is an error.
+        effects: also size every effect of the model over each track (``BallFit.effects``,
+            ``estim.fitting._missing_physics.model_effects``): how far drag, Magnus, wind,
+            the spin at the bounce and the bounce's friction move the fitted ball, in noise
+            levels, which says what the track can and cannot tell apart. A few more runs of
+            the forward model per ball (one more compilation on the ODE path).
 
     Raises:
         ValueError: data or fixed values that a fit cannot use, naming the ball and the
@@ -403,7 +421,8 @@ def fit(
         KeyError: a ball the scene does not have.
     """
     return _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
-                    max_segments=max_segments, progress=progress, balls=balls, anchors=anchors, prior=prior)[0]
+                    max_segments=max_segments, progress=progress, balls=balls, anchors=anchors, prior=prior,
+                    effects=effects)[0]
 
 
 @dataclass
@@ -424,7 +443,7 @@ class _Units:
 
 
 def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, progress, balls, anchors=None,
-             devices=None, images=None, explore=False, prior=None):
+             devices=None, images=None, explore=False, prior=None, effects=False):
     """:func:`fit`, and what it worked on (``_Units``); the keys split over ``devices``
     (``estim.fitting._sharding``; default: one device). A key of ``images``
     (:class:`ImageRows`) is fitted to its pixels; its ``data`` is then a 3-D start (the
@@ -596,6 +615,8 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     for i, b in enumerate(names):
         results[b] = _report(scene, b, free, loss, best_theta[i], best_diag, i, problems[i], inits[i], np.asarray(best_hist[i]), floors[i], noises[i])
         explain_misfit(scene, results[b], problems[i], free)
+        if effects:
+            attach_effects(scene, results[b], problems[i])
     units = _Units(names=names, free=tuple(free), problems=problems, inits=inits, starts=starts,
                    theta=np.asarray(best_theta), noises=noises, floors=floors)
     return FitResult(results), units
@@ -608,13 +629,9 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Seque
     off. In ``report.missing_physics`` and, where it could explain the misfit, as a note."""
     if report.at_noise_floor or not math.isfinite(report.rms_m):
         return
-    valid = np.asarray(problem.mask).any(axis=1)
-    span = float(np.max(np.asarray(problem.t)[valid])) - report.values["t0"]
+    params, span, noise = _fitted_ball(scene, report, problem)
     if not span > 0:
         return
-    params = registry.to_params(report.values, radius=problem.radius, mass=problem.mass,
-                                inertia=problem.inertia, scene=scene)
-    noise = report.noise_m * metres_per_unit(problem, report.model_position)
     if scene.air is None:
         report.missing_physics = missing_physics(scene, params, span, noise, report.ball)
     else:
@@ -624,6 +641,24 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Seque
         if m["explains"]:
             m["advice_note"] = format_note(m, float(problem.mass))
             report.notes.append(m["advice_note"])
+
+
+def attach_effects(scene: Scene, report: BallFit, problem: _Problem) -> None:
+    """``report.effects``: how far each effect of the model moves the fitted ball over its
+    track, in noise levels (``estim.fitting._missing_physics.model_effects``; ``[]`` where
+    the track gives no span or noise to measure them by)."""
+    params, span, noise = _fitted_ball(scene, report, problem)
+    report.effects = model_effects(scene, params, span, noise) if span > 0 and math.isfinite(noise) and noise > 0 else []
+
+
+def _fitted_ball(scene: Scene, report: BallFit, problem: _Problem):
+    """The fitted ball (``Params``, with its mass), the time its track covers after the
+    release (s) and the track's noise in metres."""
+    valid = np.asarray(problem.mask).any(axis=1)
+    span = float(np.max(np.asarray(problem.t)[valid])) - report.values["t0"]
+    params = registry.to_params(report.values, radius=problem.radius, mass=problem.mass,
+                                inertia=problem.inertia, scene=scene)
+    return params, span, report.noise_m * metres_per_unit(problem, report.model_position)
 
 
 def metres_per_unit(problem: _Problem, position) -> float:

@@ -46,7 +46,7 @@ from ..tracks._camera import CameraArrays
 from ..tracks._image import ImageTracks
 from ..tracks._reconstruct import reconstructions
 from . import _registry as registry
-from ._fit import FitResult, ImageRows, _fit_all
+from ._fit import FitResult, ImageRows, _fit_all, attach_effects
 from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
 from ._loss import robust_loss
 
@@ -81,7 +81,7 @@ def default_image_free(scene: Scene, n_cameras: int) -> tuple[str, ...]:
 
 
 def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss: str = "cauchy", steps: int = 30,
-              restarts: int = RESTARTS, max_segments: int = 48, prior=None,
+              restarts: int = RESTARTS, max_segments: int = 48, prior=None, effects: bool = False,
               progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit every ball of image tracks (module docstring).
 
@@ -92,7 +92,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         fixed: per ball, values to hold (or start from); as :func:`estim.fit`.
         restarts: restarts of every start, e from a grid over its range (default
             ``RESTARTS``).
-        loss, steps, max_segments, prior, progress: as :func:`estim.fit` (the
+        loss, steps, max_segments, prior, effects, progress: as :func:`estim.fit` (the
             scene's priors apply unless ``prior`` drops them: a few frames from one camera
             leave e and the friction coefficient loosely fixed, and what is known of the
             ball keeps them, and with them the path's depth, where they belong).
@@ -139,11 +139,14 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     # what the caller holds or gives wins.
     given = fixed or {}
     fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
-    every, _ = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
-                        max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True,
-                        prior=prior)
-    result = FitResult({b: every.balls[_best(every, b)] for b in tracks.balls})
+    every, units = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
+                            max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True,
+                            prior=prior)
+    chosen = {b: _best(every, b) for b in tracks.balls}
+    result = FitResult({b: every.balls[k] for b, k in chosen.items()})
     for b, bf in result.balls.items():
+        if effects:
+            attach_effects(scene, bf, units.problems[units.names.index(chosen[b])])
         bf.ball = b
         bf.depth = _depth_report(bf, tracks.cameras[0])
         if not bf.depth["fixed"]:

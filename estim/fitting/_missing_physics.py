@@ -29,6 +29,23 @@ When such a fit stays above its noise floor, :func:`held_coefficients` says how 
 coefficient the fit held would move the ball if it were :data:`SPREAD` larger (a probe of
 plausible size, not a measured spread), and advises fitting it.
 
+What a fit's model does contain, :func:`model_effects` sizes the same way, for every fit that
+asks (``estim.fit(..., effects=True)``, ``estim fit --effects``): how far each effect in the
+model moves the fitted ball over the whole track, the effect against the same ball without
+it, in noise levels. An effect of many noise levels is one the track measures; one below a
+noise level is one it cannot tell from its absence (its coefficient then rests on its
+default or a prior). The effects, where the scene and the ball have them:
+
+- ``quadratic drag``: the ball's drag coefficient against 0;
+- ``linear drag``: the scene's viscosity against 0 (Stokes drag);
+- ``Magnus``: the ball's lift factor against 0 (a spinning ball in air);
+- ``wind``: the scene's wind against still air;
+- ``spin at the bounce``: under a law that couples spin (the friction law), the ball's
+  spin against none, both without Magnus, so that the entry isolates what the spin does
+  to the bounces;
+- ``friction at the bounce``: under such a law, its friction coefficient ``mu`` against 0
+  (a frictionless bounce keeps the tangential velocity and the spin).
+
 Cost: one closed-form vacuum run and one ODE run (still air; a second run of the same
 compiled program for the spinning ball when a spin is given). The ODE program compiles
 once per process (seconds) and then runs in milliseconds.
@@ -50,11 +67,13 @@ import numpy as np
 from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY
 from ..forward._simulate import simulate
 from ..forward._trajectory import IMPACT
+from ..forward.laws import law_of
 from ..model._air import Air
 from ..model._params import Params
 from ..model._scene import Scene
 
-__all__ = ["EXPLAINS", "HELD", "SAMPLES", "SPREAD", "format_note", "held_coefficients", "missing_physics"]
+__all__ = ["EXPLAINS", "HELD", "SAMPLES", "SPREAD", "format_effects", "format_note", "held_coefficients",
+           "missing_physics", "model_effects"]
 
 # An effect that moves the ball by at least this many noise levels could explain residuals
 # above the noise floor (the fit's floor allows 1.3 noise levels of rms).
@@ -258,3 +277,96 @@ def format_note(entry: dict, mass_kg: float) -> str:
     return (f"{entry['effect']} would move this {_number(mass_kg * 1e3)} g ball by "
             f"{_short(entry['max_deviation_mm'])} mm in its first flight, "
             f"{_short(entry['noise_levels'])} noise levels: {entry['advice']}")
+
+
+def _verdict(levels: float) -> str:
+    """What a track can say of an effect of this many noise levels."""
+    return "measured" if levels >= EXPLAINS else ("marginal" if levels >= 1.0 else "below the noise")
+
+
+def model_effects(
+    scene: Scene,
+    params: Params,
+    t_span: float,
+    noise_m: float,
+    *,
+    samples: int = SAMPLES,
+) -> list[dict]:
+    """How far each effect that the model contains moves this ball over this track (module
+    docstring): the fitted ball against the same ball without the effect.
+
+    Args:
+        scene: the scene of the fit.
+        params: one ball, unbatched, as fitted, with its mass.
+        t_span: the time the track covers after the release (s), > 0.
+        noise_m: the track's noise level (m), > 0.
+        samples: sample times over ``[0, t_span]`` for the largest deviation.
+
+    Returns:
+        One dict per effect the scene and the ball have (``[]`` in a vacuum under the seed's
+        law): ``effect``, ``switched_off`` (what the run without it changes, e.g.
+        ``"drag_coefficient = 0"``), ``max_deviation_mm`` (the largest distance between the
+        two runs over the whole track, bounces included), ``noise_levels`` (that distance
+        over ``noise_m``) and ``verdict``: ``"measured"`` (at least :data:`EXPLAINS` noise
+        levels), ``"marginal"`` (1 to 3) or ``"below the noise"`` (the track cannot tell the
+        effect from its absence).
+    """
+    if params.batch_shape != () or params.mass is None:
+        raise ValueError("params must be one ball (batch shape ()) with its mass")
+    t_span, noise_m = float(t_span), float(noise_m)
+    if not (math.isfinite(t_span) and t_span > 0 and math.isfinite(noise_m) and noise_m > 0):
+        raise ValueError(f"t_span and noise_m must be finite and > 0, got {t_span!r} and {noise_m!r}")
+    air, law = scene.air, law_of(scene)
+    spinning = bool(np.any(np.asarray(params.spin) != 0))
+    zero = jnp.zeros(())
+    # (effect, what is switched off, the run without it, the run it is compared with);
+    # None: the fitted ball in its scene. Every run is one ball in a scene of the same
+    # structure (only values differ): one compiled program.
+    runs = []
+    if air is not None:
+        if float(air.density) > 0 and float(params.drag_coefficient) > 0:
+            runs.append(("quadratic drag", "drag_coefficient = 0",
+                         (scene, dataclasses.replace(params, drag_coefficient=zero)), None))
+        if float(air.viscosity) > 0:
+            runs.append(("linear drag", "viscosity = 0",
+                         (dataclasses.replace(scene, air=Air(air.density, 0.0, air.wind)), params), None))
+        if float(air.density) > 0 and spinning and float(params.lift_factor) > 0:
+            runs.append(("Magnus", "lift_factor = 0", (scene, dataclasses.replace(params, lift_factor=zero)), None))
+        if bool(np.any(np.asarray(air.wind) != 0)):
+            runs.append(("wind", "wind = 0", (dataclasses.replace(scene, air=Air(air.density, air.viscosity)), params),
+                         None))
+    if law.couples_spin:
+        if spinning:
+            lifeless = dataclasses.replace(params, lift_factor=zero)
+            runs.append(("spin at the bounce", "spin = 0 (and lift_factor = 0 in both runs)",
+                         (scene, dataclasses.replace(lifeless, spin=jnp.zeros(3))), (scene, lifeless)))
+        if float(params.mu) > 0:
+            runs.append(("friction at the bounce", "mu = 0", (scene, dataclasses.replace(params, mu=zero)), None))
+    if not runs:
+        return []
+    ts = jnp.linspace(0.0, t_span, int(samples))
+
+    def position(run):
+        return np.asarray(simulate(*run, t_span, ts=ts).position)
+
+    fitted = position((scene, params))
+    out = []
+    for effect, off, without, reference in runs:
+        deviation = float(np.max(np.linalg.norm(position(without) - (fitted if reference is None else position(reference)),
+                                                axis=-1)))
+        levels = deviation / noise_m
+        out.append({"effect": effect, "switched_off": off, "max_deviation_mm": deviation * 1e3,
+                    "noise_levels": levels, "verdict": _verdict(levels)})
+    return out
+
+
+def format_effects(effects: list[dict]) -> str:
+    """The effects of :func:`model_effects` on one line, e.g. ``effects, in noise levels
+    over the track: quadratic drag 41, Magnus 12, friction at the bounce 0.4 (below the
+    noise: this track cannot tell it from its absence)``."""
+    def one(m):
+        tail = {"marginal": " (marginal)",
+                "below the noise": " (below the noise: this track cannot tell it from its absence)"}.get(m["verdict"], "")
+        return f"{m['effect']} {_short(m['noise_levels'])}{tail}"
+
+    return "effects, in noise levels over the track: " + ", ".join(one(m) for m in effects)

@@ -191,6 +191,9 @@ class Parameter(eqx.Module):
             (the spin).
         needs_bounce: the data determines it only through bounces (a note says so when
             none is resolved).
+        opt_in: fitted only when asked (``free``, ``--also``), never by default: a
+            refinement of the law that a track must show (the restitution's slope with the
+            impact speed).
     """
 
     name: str
@@ -207,11 +210,12 @@ class Parameter(eqx.Module):
     acts_where: str
     zero_where_idle: bool
     needs_bounce: bool
+    opt_in: bool
 
     def __init__(self, name: str, *, field: str | None, default, components: Iterable[str] | None = None,
                  transform: AbstractTransform | None = None, start=None, hold_start=True,
                  show="fitted", unit: str = "", doc: str = "", acts=None, acts_where: str = "",
-                 zero_where_idle: bool = False, needs_bounce: bool = False):
+                 zero_where_idle: bool = False, needs_bounce: bool = False, opt_in: bool = False):
         self.name = name
         self.field = field
         self.components = (name,) if components is None else tuple(components)
@@ -231,6 +235,7 @@ class Parameter(eqx.Module):
         self.acts_where = acts_where
         self.zero_where_idle = zero_where_idle
         self.needs_bounce = needs_bounce
+        self.opt_in = opt_in
 
     def __check_init__(self):
         bad = [s for s in self.show if s not in ("always", "fitted", "never")]
@@ -285,6 +290,10 @@ REGISTRY: tuple[Parameter, ...] = (
     Parameter("mu", field="mu", transform=Sigmoid(), default=FRICTION_DEFAULT, start=lambda s: (s.mu,),
               show="always", needs_bounce=True, acts=_read_by_law("mu"), acts_where=UNDER_LAW,
               doc="Coulomb friction coefficient of the friction law (estim.FrictionLaw), in (0, 1)"),
+    Parameter("e_slope", field="e_slope", default=0.0, unit="s/m", needs_bounce=True, opt_in=True,
+              acts=_read_by_law("e_slope"), acts_where=UNDER_LAW,
+              doc="change of e per m/s of normal impact speed (negative: e falls as impacts get faster), "
+                  "about the friction law's reference speed 2.446 m/s (the ITTF drop test's)"),
     Parameter("position", field="position", components=("x0", "y0", "z0"), unit="m",
               default=lambda ball: tuple(ball.position), start=lambda s: s.position, show="never",
               doc="release position of the ball's centre"),
@@ -514,7 +523,7 @@ def default_free(scene: Scene, lateral: bool) -> tuple[str, ...]:
     the spin, which the bounce (and in air the Magnus force) reads."""
     if not law_of(scene).couples_spin:
         return FACTOR_FREE + (LATERAL if lateral else ())
-    coefficients = tuple(p.name for p in REGISTRY if p.needs_bounce and p.acts(scene))
+    coefficients = tuple(p.name for p in REGISTRY if p.needs_bounce and not p.opt_in and p.acts(scene))
     return coefficients + expand(("position", "velocity", "spin"))
 
 

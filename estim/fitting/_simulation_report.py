@@ -27,25 +27,35 @@ SENSITIVITY_NAMES = ("e", "mu_t", "vx0")
 def simulation_report(scene: Scene, traj: Trajectory, values: Mapping[str, float], t_end: float) -> dict:
     """One ball's trajectory as JSON-ready numbers: every event (time, position, pre-impact
     velocity, the surface and face it touched, the contact ``normal`` from the solid
-    towards the ball's centre, the velocity ``after`` it, ``impact`` or ``settle``), the
-    final state, and the registry ``values`` it was simulated with (``params``; in a scene
-    without air the air's parameters are left out)."""
+    towards the ball's centre, the velocity ``after`` it, ``impact`` or ``settle``; where the
+    simulation carries spin, the spin before, ``wx wy wz`` in rad/s, and after), the final
+    state, and the registry ``values`` it was simulated with (``params``; in a scene without
+    air the air's parameters are left out)."""
     ev = traj.events
     count = int(ev.count)
     t, pos = np.asarray(ev.t)[:count], np.asarray(ev.position)[:count]
     vpre, face, kind = np.asarray(ev.velocity_pre)[:count], np.asarray(ev.face)[:count], np.asarray(ev.kind)[:count]
     vpost = np.asarray(ev.velocity_post)[:count]
     normal = np.asarray(contact_normals(scene, face, pos))
+    spins = ev.spin_pre is not None
+    if spins:
+        wpre, wpost = np.asarray(ev.spin_pre)[:count], np.asarray(ev.spin_post)[:count]
     events = []
     for i in range(count):
         surface, label = scene.face_label(int(face[i]))
+        after = {"vx": float(vpost[i, 0]), "vy": float(vpost[i, 1]), "vz": float(vpost[i, 2])}
+        spin = {}
+        if spins:
+            spin = {"wx": float(wpre[i, 0]), "wy": float(wpre[i, 1]), "wz": float(wpre[i, 2])}
+            after |= {"wx": float(wpost[i, 0]), "wy": float(wpost[i, 1]), "wz": float(wpost[i, 2])}
         events.append({
             "t": float(t[i]),
             "x": float(pos[i, 0]), "y": float(pos[i, 1]), "z": float(pos[i, 2]),
             "vx": float(vpre[i, 0]), "vy": float(vpre[i, 1]), "vz": float(vpre[i, 2]),
+            **spin,
             "surface": surface, "face": label,
             "normal": [float(x) for x in normal[i]],
-            "after": {"vx": float(vpost[i, 0]), "vy": float(vpost[i, 1]), "vz": float(vpost[i, 2])},
+            "after": after,
             "kind": "impact" if int(kind[i]) == IMPACT else "settle",
         })
     fp, fv = np.asarray(traj.final.position), np.asarray(traj.final.velocity)

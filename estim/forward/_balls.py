@@ -39,6 +39,7 @@ def flat_params(params: Params) -> Params:
         flatten(params.position, (3,)), flatten(params.velocity, (3,)), mass=mass,
         drag_coefficient=flatten(params.drag_coefficient, ()), spin=flatten(params.spin, (3,)),
         mu=flatten(params.mu, ()), inertia=flatten(params.inertia, ()), lift_factor=flatten(params.lift_factor, ()),
+        e_slope=flatten(params.e_slope, ()),
     )
 
 

@@ -161,7 +161,8 @@ class Step(eqx.Module):
 
 class Node(eqx.Module):
     """One step in values: start and end state (end velocity before and after a reset) and
-    the accelerations at both ends, for quintic Hermite dense output."""
+    the accelerations at both ends, for quintic Hermite dense output; the spin at the start
+    (constant over the step) and after the end's reset."""
 
     t0: Float[Array, ""]
     p0: Float[Array, "3"]
@@ -172,6 +173,8 @@ class Node(eqx.Module):
     v1: Float[Array, "3"]
     a1: Float[Array, "3"]
     v1_post: Float[Array, "3"]
+    w0: Float[Array, "3"]
+    w1_post: Float[Array, "3"]
 
 
 class OdeSettings(eqx.Module):
@@ -770,14 +773,14 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         v1 = jnp.where(zeno, z_vel, v1)
         v_post = jnp.where(zeno, z_vel, v_post)
         w_post = jnp.where(zeno, w, w_post)
-        node = Node(t, p, v, jnp.where(zeno, g_vec, a0), t1, p1, v1, jnp.where(zeno, g_vec, a1), v_post)
+        node = Node(t, p, v, jnp.where(zeno, g_vec, a0), t1, p1, v1, jnp.where(zeno, g_vec, a1), v_post, w, w_post)
         return (t1, jnp.concatenate([p1, v_post, w_post])), node
 
     def idle(carry):
         """What ``apply`` gives for a STEP_UNUSED slot: a step of length 0."""
         t, y = carry
         a = f(y, _free_args())[3:6]
-        return Node(t, y[:3], y[3:6], a, t, y[:3], y[3:6], a, y[3:6])
+        return Node(t, y[:3], y[3:6], a, t, y[:3], y[3:6], a, y[3:6], y[6:], y[6:])
 
     # 0 * e, not a constant, for a single trace of the body (see estim.forward._solver.replay).
     init = (0.0 * params.e, jnp.concatenate([params.position, params.velocity, params.spin]))
@@ -935,6 +938,9 @@ def list_events(nodes: Node, steps: Step, normals, law: AbstractContactLaw, c, g
         post = jnp.where(in_series[:, None], post_b, nd.v1_post)
     else:  # (every event ends a step)
         t, pos, pre, post = nd.t1, nd.p1, nd.v1, nd.v1_post
+    # The spin is constant in flight, and a series' bounces leave it as it is (a summable
+    # law does not couple spin).
+    spin_post = jnp.where(in_series[:, None], nd.w0, nd.w1_post)
     # A contact without normal speed is a landing to rest, not an impact.
     settle = (zeno[k] & ~in_series) | (~zeno[k] & (jnp.linalg.norm(pre - post, axis=1) <= REST_SPEED))
     zero = jnp.zeros_like(pos)
@@ -947,6 +953,8 @@ def list_events(nodes: Node, steps: Step, normals, law: AbstractContactLaw, c, g
         kind=jnp.where(valid, jnp.where(settle, REST, IMPACT), -1).astype(jnp.int32),
         count=jnp.minimum(ends[-1], max_events).astype(jnp.int32),
         truncated=ends[-1] > max_events,
+        spin_pre=jnp.where(valid[:, None], nd.w0, zero),
+        spin_post=jnp.where(valid[:, None], spin_post, zero),
     )
 
 

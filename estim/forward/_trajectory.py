@@ -46,6 +46,9 @@ class Events(eqx.Module):
             slides on the face.
         count: number of listed events.
         truncated: more events happened than ``max_events`` could hold.
+        spin_pre, spin_post: the ball's angular velocity (rad/s) just before and just after,
+            where the simulation carries spin (the ODE path: a scene with air or a law that
+            couples spin); ``None`` on the closed-form path, where spin plays no part.
     """
 
     t: Float[Array, "*batch events"]
@@ -56,6 +59,8 @@ class Events(eqx.Module):
     kind: Int[Array, "*batch events"]
     count: Int[Array, "*batch"]
     truncated: Bool[Array, "*batch"]
+    spin_pre: Float[Array, "*batch events 3"] | None = None
+    spin_post: Float[Array, "*batch events 3"] | None = None
 
 
 class AbstractSolution(eqx.Module):

@@ -61,6 +61,9 @@ class Params(eqx.Module):
         inertia: the ball's moment of inertia as a ratio ``I / (m r^2)``, in (0, 1]: 2/5
             for a solid sphere (the default), 2/3 for a thin shell; ``Params.for_ball``
             takes it from the scene (the ball body's inertia).
+        e_slope: how the restitution of a law that reads it changes with the impact's normal
+            speed (s/m; negative: e falls as impacts get faster), 0 (e the same at every
+            speed) by default (``estim.forward.laws.FrictionLaw``).
 
     Impossible values (NaN, e outside [0, 1], r <= 0, ...) raise ``ValueError`` here when
     the values are concrete, and inside ``jit`` when :func:`estim.simulate` runs.
@@ -77,10 +80,11 @@ class Params(eqx.Module):
     mu: Float[Array, "*batch"]
     inertia: Float[Array, "*batch"]
     lift_factor: Float[Array, "*batch"]
+    e_slope: Float[Array, "*batch"]
 
     def __init__(self, e, mu_t, radius, position, velocity, *, mass=None,
                  drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0), mu=0.0, inertia=SOLID_INERTIA,
-                 lift_factor=1.0):
+                 lift_factor=1.0, e_slope=0.0):
         self.e = _float64("e", e)
         self.mu_t = _float64("mu_t", mu_t)
         self.radius = _float64("radius", radius)
@@ -92,6 +96,7 @@ class Params(eqx.Module):
         self.mu = _float64("mu", mu)
         self.inertia = _float64("inertia", inertia)
         self.lift_factor = _float64("lift_factor", lift_factor)
+        self.e_slope = _float64("e_slope", e_slope)
 
     def __check_init__(self):
         for name in ("position", "velocity", "spin"):
@@ -101,7 +106,8 @@ class Params(eqx.Module):
         fields = {"e": self.e.shape, "mu_t": self.mu_t.shape, "radius": self.radius.shape,
                   "position": self.position.shape[:-1], "velocity": self.velocity.shape[:-1],
                   "drag_coefficient": self.drag_coefficient.shape, "spin": self.spin.shape[:-1],
-                  "mu": self.mu.shape, "inertia": self.inertia.shape, "lift_factor": self.lift_factor.shape}
+                  "mu": self.mu.shape, "inertia": self.inertia.shape, "lift_factor": self.lift_factor.shape,
+                  "e_slope": self.e_slope.shape}
         if self.mass is not None:
             fields["mass"] = self.mass.shape
         try:
@@ -121,6 +127,7 @@ class Params(eqx.Module):
             ("mu", self.mu, lambda x: x >= 0, "must be >= 0"),
             ("inertia", self.inertia, lambda x: (x > 0) & (x <= 1), "must lie in (0, 1] (I / (m r^2))"),
             ("lift_factor", self.lift_factor, lambda x: x >= 0, "must be >= 0"),
+            ("e_slope", self.e_slope, lambda x: np.isfinite(x), "must be finite"),
         )
         if self.mass is not None:
             checks += (("mass", self.mass, lambda x: x > 0, "must be > 0 (kg)"),)
@@ -138,7 +145,7 @@ class Params(eqx.Module):
             self.position.shape[:-1], self.velocity.shape[:-1],
             () if self.mass is None else self.mass.shape,
             self.drag_coefficient.shape, self.spin.shape[:-1], self.mu.shape, self.inertia.shape,
-            self.lift_factor.shape,
+            self.lift_factor.shape, self.e_slope.shape,
         )
 
     @classmethod
@@ -155,6 +162,7 @@ class Params(eqx.Module):
         spin=(0.0, 0.0, 0.0),
         mu=0.0,
         lift_factor=1.0,
+        e_slope=0.0,
     ) -> Params:
         """Parameters of the scene's ball ``ball`` (radius, mass and inertia from the
         scene); the release position defaults to the ball's position in the scene file."""
@@ -165,7 +173,7 @@ class Params(eqx.Module):
             drag_coefficient = DRAG_COEFFICIENT
         return cls(e, mu_t, spec.radius, position, velocity, mass=spec.mass,
                    drag_coefficient=drag_coefficient, spin=spin, mu=mu, inertia=spec.inertia,
-                   lift_factor=lift_factor)
+                   lift_factor=lift_factor, e_slope=e_slope)
 
 
 # The checks of ``Params.__check_init__`` as they run inside ``jit``: a message and what
@@ -186,6 +194,7 @@ UNREAD_BY_KERNELS_CHECKS = (
     ("mu must be >= 0", lambda p: p.mu >= 0),
     ("inertia must lie in (0, 1]", lambda p: (p.inertia > 0) & (p.inertia <= 1)),
     ("lift_factor must be >= 0", lambda p: p.lift_factor >= 0),
+    ("e_slope must be finite", lambda p: jnp.isfinite(p.e_slope)),
 )
 
 
