@@ -72,11 +72,13 @@ def test_a_narrow_prior_holds_the_parameter(stairs, data, alone):
 
 def test_scene_declares_priors(tmp_path):
     scene = estim.load_scene(TABLE)
-    assert dict((n, (m, s)) for n, m, s in scene.priors) == {"e": (0.88, 0.05), "mu": (0.25, 0.1)}
+    assert dict((n, (m, s)) for n, m, s in scene.priors) == {"e": (0.88, 0.05), "mu": (0.25, 0.1),
+                                                             "drag_coefficient": (0.5, 0.2)}
     assert scene.with_geometry("seed").priors == scene.priors
     assert estim.load_scene(STAIRS).priors == ()
-    assert registry.priors(scene, {"mu": None, "spin": (0.0, 300.0)}) == {
-        "e": (0.88, 0.05), "spin_x": (0.0, 300.0), "spin_y": (0.0, 300.0), "spin_z": (0.0, 300.0)}
+    assert registry.priors(scene, {"mu": None, "spin": (0.0, 300.0), "e_slope": None}) == {
+        "e": (0.88, 0.05), "drag_coefficient": (0.5, 0.2), "spin_x": (0.0, 300.0), "spin_y": (0.0, 300.0),
+        "spin_z": (0.0, 300.0)}
     text = TABLE.read_text()
     for data, words in (("0.9", "two finite numbers"), ("0.9 0", "standard deviation"), ("0.9 0.1 3", "two")):
         bad = tmp_path / "bad.xml"
@@ -102,7 +104,23 @@ def test_bad_priors_are_refused(prior, words):
 
 def test_a_prior_on_a_held_parameter_is_refused(stairs, data):
     with pytest.raises(ValueError, match=r"a prior on \['vz0'\], which this fit holds"):
-        estim.fit(stairs, data, prior={"vz0": (0.0, 1.0)})
+        estim.fit(stairs, data, free=registry.default_free(stairs, lateral=False), prior={"vz0": (0.0, 1.0)})
+
+
+def test_what_has_a_prior_is_fitted_by_default():
+    """A fit of a track in metres estimates by default, besides the law's coefficients and
+    the release state, every parameter that acts and has a prior (the table-tennis scene's
+    drag coefficient), unless the prior is dropped; a parameter that does not act in the
+    scene (the drag coefficient in a vacuum) does not join."""
+    table = estim.load_scene(TABLE)
+    known = registry.priors(table)
+    assert registry.default_free(table, True, known)[:4] == ("e", "mu", "drag_coefficient", "x0")
+    assert registry.default_free(table, True, tuple(known) + ("lift_factor",))[3] == "lift_factor"
+    assert "drag_coefficient" not in registry.default_free(table, True, registry.priors(table, {"drag_coefficient": None}))
+    assert "drag_coefficient" not in registry.default_free(table.with_air(None), True, known)
+    assert registry.default_free(table, True) == registry.default_free(table, True, ("e", "mu"))
+    stairs = estim.load_scene(STAIRS)
+    assert registry.default_free(stairs, False, ("vz0",)) == ("e", "mu_t", "vx0", "x0", "z0", "vz0")
 
 
 def test_cli_prior(tmp_path, capsys):
@@ -114,8 +132,7 @@ def test_cli_prior(tmp_path, capsys):
         assert fitted["prior"] == {"e": {"mean": 0.7, "sd": 0.3}, "mu_t": {"mean": 0.9, "sd": 0.5}}
         assert fitted["converged"]
     for argv, words in ((["--prior", "e=0.5"], "NAME=MEAN,SD"), (["--prior", "e=a,b"], "not a number"),
-                        (["--prior", "=1,2"], "NAME=MEAN,SD"), (["--prior", "e=0.5,-1"], "standard deviation"),
-                        (["--prior", "vz0=0,1"], "which this fit holds")):
+                        (["--prior", "=1,2"], "NAME=MEAN,SD"), (["--prior", "e=0.5,-1"], "standard deviation")):
         assert main(["fit", DEMO_CSV, "--scene", str(STAIRS)] + argv) == 2, argv
         err = capsys.readouterr().err
         assert words in err, (argv, err)

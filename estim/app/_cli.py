@@ -633,12 +633,13 @@ def _cmd_replay(args) -> int:
 # --------------------------------------------------------------------------- fit
 
 
-def _also(args, base) -> dict:
+def _also(args, base, priors: bool = True) -> dict:
     """``free=`` for the fit when --also asks for more parameters (registry names; a
     vector's name stands for its components), else nothing (the fit's default), and
     ``prior=`` when --prior gives priors, ``effects=True`` with --effects. ``base``: the
     default to add them to, or a scene
-    (its default, ``registry.default_free``; the lateral release state joins it where the
+    (its default, ``registry.default_free``, with what has a prior unless ``priors`` is
+    false, as for clips fitted together; the lateral release state joins it where the
     tracks have y, as in ``estim.fit``)."""
     out = {"prior": _priors(args.prior)} if getattr(args, "prior", None) else {}
     if getattr(args, "effects", False):
@@ -646,7 +647,8 @@ def _also(args, base) -> dict:
     if not getattr(args, "also", None):
         return out
     if not isinstance(base, tuple):
-        base = registry.default_free(base, lateral=False)
+        known = registry.priors(base, out.get("prior")) if priors else ()
+        base = registry.default_free(base, lateral=False, known=tuple(known))
     return {**out, "free": tuple(base) + tuple(n for n in registry.expand(args.also) if n not in base)}
 
 
@@ -717,7 +719,7 @@ def _cmd_fit_clips(args, scene, say) -> int:
         args.tracks, scene, shared=tuple(args.shared), pixels=args.pixels, ball=args.ball,
         frame_interval=args.frame_interval, metres_per_pixel=args.metres_per_pixel,
         from_bounce=args.from_bounce, say=say, loss=args.loss, devices=devices,
-        **_also(args, PIXEL_FREE if args.pixels else scene))
+        **_also(args, PIXEL_FREE if args.pixels else scene, priors=False))
     payload = result.to_json()
     if args.out and jax.process_index() == 0:
         from ..show._outputs import write_pooled_outputs  # lazy: matplotlib

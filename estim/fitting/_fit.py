@@ -461,7 +461,9 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     say = progress or (lambda msg: None)
     names = list(data)
     lateral = any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)
-    free = registry.default_free(scene, lateral) if free is None else registry.expand(free)
+    # A track in metres fits by default what its priors speak of (registry.default_free).
+    known = tuple(registry.priors(scene, prior)) if images is None else ()
+    free = registry.default_free(scene, lateral, known) if free is None else registry.expand(free)
     offsets = registry.component("dt_camera2").components
     registry.check_acting(scene, [n for n in free if n not in offsets])
     if set(registry.FACTOR_FREE) <= set(free) and "y0" not in free and lateral:

@@ -513,17 +513,25 @@ FACTOR_FREE = ("e", "mu_t", "vx0", "x0", "z0")
 LATERAL = ("y0", "vy0")
 
 
-def default_free(scene: Scene, lateral: bool) -> tuple[str, ...]:
+def default_free(scene: Scene, lateral: bool, known: Iterable[str] = ()) -> tuple[str, ...]:
     """What a fit estimates by default in ``scene``: the law's coefficients that act there
     (``e``, and ``mu_t`` or ``mu``) and the release state.
 
     Under the seed's factor law: ``FACTOR_FREE``, and ``LATERAL`` for a track with y
     (``lateral``). Under a law that couples spin (a ball thrown or hit, as in table
     tennis): the law's coefficients, the release position and velocity (3-vectors) and
-    the spin, which the bounce (and in air the Magnus force) reads."""
+    the spin, which the bounce (and in air the Magnus force) reads.
+
+    ``known``: the parameters with a prior (:func:`priors`: the scene's, as a fit of one
+    track in metres applies them, ``estim.fit``); those that act join, after the law's
+    coefficients. What is known of a parameter, a real ball's drag coefficient say, is
+    estimated with that knowledge rather than held at a textbook value."""
+    known = tuple(n for n in expand(tuple(known)) if _ENTRY[n].acts(scene))
     if not law_of(scene).couples_spin:
-        return FACTOR_FREE + (LATERAL if lateral else ())
+        base = FACTOR_FREE + (LATERAL if lateral else ())
+        return base + tuple(n for n in known if n not in base)
     coefficients = tuple(p.name for p in REGISTRY if p.needs_bounce and not p.opt_in and p.acts(scene))
+    coefficients += tuple(n for n in known if n not in coefficients)
     return coefficients + expand(("position", "velocity", "spin"))
 
 
