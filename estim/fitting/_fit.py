@@ -376,7 +376,8 @@ def fit(
             ``registry.default_free`` gives for the scene: under the seed's factor law e,
             mu_t, vx0, x0, z0, plus y0 and vy0 when the tracks have a y coordinate (as for
             any ``free`` that holds those five); under a law that couples spin (the friction
-            law) e, mu, the release position, velocity and spin. The rest are held at the data's
+            law) e, mu, the release position, velocity and spin; and every parameter with
+            a prior (``prior``). The rest are held at the data's
             start or at their default (``Parameter.hold_start``): x0, y0, z0, vx0, vy0 as
             read from the data (in the ball's plane of travel:
             ``estim.fitting._initial.release_start``; y0 the ball's y in the scene and
@@ -403,8 +404,10 @@ def fit(
             apply unless dropped). Each prior on a fitted parameter enters the loss as one
             more residual, ``(value - mean) / sd`` in noise units, under the same robust
             loss as the data (Gaussian under ``"l2"``, heavy-tailed under ``"cauchy"``);
-            the standard errors are then the posterior's. A scene's prior on a parameter
-            the fit holds is not used; a given one is an error.
+            the standard errors are then the posterior's. With the default ``free``, every
+            parameter that acts and has a prior is fitted (``registry.default_free``: the
+            table-tennis scene's drag coefficient). With a given ``free``, a scene's prior
+            on a parameter the fit holds is not used; a given one is an error.
         effects: also size every effect of the model over each track (``BallFit.effects``,
             ``estim.fitting._missing_physics.model_effects``): how far drag, Magnus, wind,
             the spin at the bounce and the bounce's friction move the fitted ball, in noise
