@@ -70,7 +70,7 @@ from ._missing_physics import (
     missing_physics,
     model_effects,
 )
-from ._sharding import gather, mesh_of, padded_size, place
+from ._sharding import gather, mesh_of, padded_size, per_unit, place
 
 __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
 
@@ -542,7 +542,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         problems = jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[:1], padded - n, axis=0)]), problems)
         problems = eqx.tree_at(lambda p: p.mask, problems, problems.mask & (np.arange(padded) < n)[:, None, None])
         out = gather(_run(scene, tuple(free), loss, steps, max_segments, place(theta, mesh),
-                          jax.tree.map(lambda x: place(x, mesh), problems)))
+                          jax.tree.map(lambda x: place(x, mesh), problems), mesh))
         return jax.tree.map(lambda x: x[:n], out)
 
     def run_rows(theta, problems, rows):
@@ -891,13 +891,14 @@ def _at_floor(diag, i, noise) -> bool:
 
 
 @jit(options=FIT_COMPILE)
-def _run(scene, free, loss, steps, max_segments, theta, batch):
+def _run(scene, free, loss, steps, max_segments, theta, batch, mesh=None):
     """Levenberg-Marquardt on the robust loss, every ball at once: ``steps`` iterations.
 
     Returns the best point per ball, the loss histories ``(balls, steps)``, and the
     residuals, Jacobian (with respect to theta), validity mask, model positions and impact
-    count at the best point. The balls are a batch inside each iteration (the scan over
-    iterations is not itself batched, which keeps tracing to one pass over its body).
+    count at the best point. Each iteration plans, linearises and steps one ball after the
+    other (``estim.fitting._sharding.per_unit``, over the devices of ``mesh``); a ball's
+    replay runs only the slots its own plan uses (``estim.forward._scan``).
     """
     m = batch.obs[0].size  # residuals per ball
     n_balls, n_theta = theta.shape
@@ -908,14 +909,12 @@ def _run(scene, free, loss, steps, max_segments, theta, batch):
     )
     carry = (theta, jax.vmap(_LM.init)(theta), best)
 
+    def one(c, pr):
+        pl, used = _plan_at(scene, registry.to_physical(c[0], free, pr.fixed), pr, max_segments)
+        return _lm_step(scene, free, loss, c, pr, pl, used)
+
     def step(carry, _):
-        # Plan every ball first: the replays then run only as many slots as the longest
-        # solution of the batch uses (estim.forward._scan).
-        at = lambda th, pr: _plan_at(scene, registry.to_physical(th, free, pr.fixed), pr, max_segments)  # noqa: E731
-        plans, used = jax.vmap(at)(carry[0], batch)
-        n_used = jnp.max(used)
-        one = lambda c, pr, pl: _lm_step(scene, free, loss, c, pr, pl, n_used)  # noqa: E731
-        return jax.vmap(one)(carry, batch, plans)
+        return per_unit(one, mesh, carry, batch)
 
     (_, state, best), history = jax.lax.scan(step, carry, None, length=steps)
     return state.best_params, history.T, best

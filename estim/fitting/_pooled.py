@@ -85,7 +85,7 @@ from ._fit import (
     explain_misfit,
 )
 from ._loss import robust_weight
-from ._sharding import gather, mesh_of, padded_size, place
+from ._sharding import gather, mesh_of, padded_size, per_unit, place
 
 __all__ = ["Clip", "PooledResult", "SharedFit", "fit_clips"]
 
@@ -293,22 +293,19 @@ def _arrow_step(shared_idx, local_idx, group, real, state: _Arrow, J, u, w, valu
 
 @jit(options=FIT_COMPILE)
 def _run_joint(scene, free, shared_idx, local_idx, loss, steps, max_segments, state: _Arrow, best,
-               batch, group, real):
+               batch, group, real, mesh=None):
     """``steps`` joint iterations from ``state``; returns the state, the loss per ball per
     step (G, steps) and the residuals, Jacobian, validity, positions and impacts at the
     best point per unit (as ``estim.fitting._fit._run``), ``best`` where none was better."""
 
+    def one(theta, pr):
+        pl, used = _plan_at(scene, registry.to_physical(theta, free, pr.fixed), pr, max_segments)
+        J, r, aux, u, value = _linearise(scene, free, loss, theta, pr, pl, used)
+        return J / pr.scale, u, robust_weight(u, loss), value, (r, J, aux)
+
     def step(carry, _):
         state, best = carry
-        at = lambda th, pr: _plan_at(scene, registry.to_physical(th, free, pr.fixed), pr, max_segments)  # noqa: E731
-        plans, used = jax.vmap(at)(state.theta, batch)
-        n_used = jnp.max(used)
-
-        def one(theta, pr, pl):
-            J, r, aux, u, value = _linearise(scene, free, loss, theta, pr, pl, n_used)
-            return J / pr.scale, u, robust_weight(u, loss), value, (r, J, aux)
-
-        Ju, u, w, value, diag = jax.vmap(one)(state.theta, batch, plans)
+        Ju, u, w, value, diag = per_unit(one, mesh, state.theta, batch)
         new = _arrow_step(shared_idx, local_idx, group, real, state, Ju, u, w, value)
         improved = (group @ (new.best_value < state.best_value).astype(value.dtype)) > 0.5
         best = jax.tree.map(
@@ -440,7 +437,7 @@ def fit_clips(
         chunk = 10
         for done in range(0, joint_steps, chunk):
             state, history, best = _run_joint(scene, free, shared_idx, local_idx, loss, min(chunk, joint_steps - done),
-                                              max_segments, state, best, *placed)
+                                              max_segments, state, best, *placed, mesh)
             histories.append(np.asarray(gather(history)))
             say(f"joint fit: step {min(done + chunk, joint_steps)}/{joint_steps}, loss "
                 + ", ".join(f"{b} {v:.2f}" for b, v in zip(balls, histories[-1][:, -1], strict=True)))

@@ -1,12 +1,12 @@
 """The batch axis of a fit (balls, clips) split over devices with ``jax.sharding``.
 
-A fit's work is one batched program over its units (``vmap``), and every reduction over
-units is a sum; placing the unit axis on a one-axis :class:`jax.sharding.Mesh` lets XLA
-split the program over the devices and turn those sums into all-reduces, with no change to
-the program. The batch is padded to a multiple of the number of devices with units whose
-samples are all masked (they contribute nothing). On several hosts
-(``jax.distributed``) every process builds its own shards from the same host arrays and
-gathers the results back.
+A fit's work is one program over its units: each unit's simulation and linearisation
+(:func:`per_unit`), then steps whose reductions over units are sums. Placing the unit axis
+on a one-axis :class:`jax.sharding.Mesh` splits the program over the devices: each device
+runs the units it holds (``jax.shard_map``), and XLA turns the sums into all-reduces. The
+batch is padded to a multiple of the number of devices with units whose samples are all
+masked (they contribute nothing). On several hosts (``jax.distributed``) every process
+builds its own shards from the same host arrays and gathers the results back.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-__all__ = ["gather", "mesh_of", "padded_size", "place"]
+__all__ = ["gather", "mesh_of", "padded_size", "per_unit", "place"]
 
 AXIS = "units"
 
@@ -45,6 +45,26 @@ def place(x, mesh: Mesh | None):
         return jnp.asarray(x)
     sharding = NamedSharding(mesh, PartitionSpec(AXIS, *([None] * (x.ndim - 1))))
     return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+
+def per_unit(fn, mesh: Mesh | None, *xs):
+    """``fn`` applied to each unit of ``xs`` (pytrees of arrays with the units on their
+    first axis), one unit after the other (``jax.lax.map``); on a mesh, each device maps
+    over the units it holds (``jax.shard_map``).
+
+    A loop, not ``vmap``: a unit's simulation is an event loop full of branches, and a
+    batch of it would run every branch of each ``cond`` for every unit and every loop as
+    long as the longest unit's, and trace the whole loop once more for the batch (the
+    fit of one table-tennis shot compiled in 35 s batched, 20 s as a loop, and ran as
+    fast or faster: 2-core reference machine, jax 0.10.2)."""
+
+    def local(*xs):
+        return jax.lax.map(lambda x: fn(*x), xs)
+
+    if mesh is None:
+        return local(*xs)
+    return jax.shard_map(local, mesh=mesh, in_specs=PartitionSpec(AXIS), out_specs=PartitionSpec(AXIS),
+                         check_vma=False)(*xs)
 
 
 def gather(tree):

@@ -77,6 +77,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ..model._air import acceleration, step_bounds
@@ -273,16 +274,26 @@ def _settled(law: AbstractContactLaw, hops, v, w, n, c):
 
 def _rk_step(settings, f, t, h, y, args):
     """One explicit Runge-Kutta step of length h with the solver's Butcher tableau (diffrax's
-    coefficients, unrolled: the vector field is autonomous and tiny, and an unrolled step
-    compiles in a fraction of the time of the general-purpose ``solver.step``). Returns the
-    new state and the embedded error estimate."""
+    coefficients). The stages run in a loop with one evaluation of the vector field: the
+    step is called from several places of the event loop (the step, the Newton iteration
+    of an event, the bisection of a roll's end), and an unrolled step puts every stage's
+    vector field into the program at each of them. Returns the new state and the embedded
+    error estimate."""
     tab = settings.solver.tableau
-    ks = [f(y, args)]
-    for a_row in tab.a_lower:
-        incr = sum(float(a) * k for a, k in zip(a_row, ks, strict=False) if a != 0)
-        ks.append(f(y + h * incr, args))
-    y1 = y + h * sum(float(b) * k for b, k in zip(tab.b_sol, ks, strict=True) if b != 0)
-    err = h * sum(float(b) * k for b, k in zip(tab.b_error, ks, strict=True) if b != 0)
+    n_stages = len(tab.b_sol)
+    a = np.zeros((n_stages, n_stages))
+    for i, row in enumerate(tab.a_lower):
+        a[i + 1, : len(row)] = row
+    a, b_sol, b_err = jnp.asarray(a), jnp.asarray(tab.b_sol), jnp.asarray(tab.b_error)
+
+    def stage(i, ks):
+        # (a weighted sum written out: a dot would be a library call, estim.forward._contact.inner)
+        incr = jnp.sum(a[i][:, None] * ks, axis=0)
+        return ks.at[i].set(f(y + h * incr, args))
+
+    ks = jax.lax.fori_loop(0, n_stages, stage, jnp.zeros((n_stages,) + y.shape, y.dtype))
+    y1 = y + h * jnp.sum(b_sol[:, None] * ks, axis=0)
+    err = h * jnp.sum(b_err[:, None] * ks, axis=0)
     return y1, err
 
 
