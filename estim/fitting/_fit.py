@@ -1,6 +1,7 @@
 """Fit e, mu_t and the release speed per ball from tracked positions, with uncertainty.
 
-The pipeline, per ball (all balls of a data set run together, batched with ``vmap``):
+The pipeline, per ball (all balls of a data set run together in one program, one ball after
+the other: ``estim.fitting._sharding.per_unit``):
 
 1. **Start from the data** (``estim.fitting._initial``): split the track into flights in the
    ball's plane of travel, read e, mu_t, the release point and velocity off them; every

@@ -21,11 +21,12 @@ ball across all clips. The pipeline:
        db_i = -H_bb,i^-1 (g_b,i + H_ba,i da),
 
    with ``H = J^T W J`` and ``g = J^T W r`` per unit (r and J divided by ``s_i``, W the
-   robust weights), each diagonal block damped by ``lambda diag``. The units are one batch
-   (``vmap``), padded to a common length and masked, as in a single fit; the sums over
-   units are reductions over that batch axis, so the same program runs sharded: the unit
-   axis split over every device JAX sees (``jax.sharding``), the sums becoming
-   all-reduces. Units that reached their noise floor alone but not together restart
+   robust weights), each diagonal block damped by ``lambda diag``. The units are one axis
+   of one program, padded to a common length and masked, as in a single fit: each unit's
+   simulation and Jacobian in a loop over the units (``estim.fitting._sharding.per_unit``),
+   the sums over units reductions over that axis, so the same program runs sharded: the
+   unit axis split over every device JAX sees (``jax.sharding``; each device loops over
+   its own units), the sums becoming all-reduces. Units that reached their noise floor alone but not together restart
    their own values from their one-by-one fit, then from the data's start, and the joint
    fit is kept where its loss falls.
 3. **Uncertainty** of the shared values, from the Schur complement at the optimum: unit i

@@ -363,32 +363,28 @@ def _roll_end(settings, f, faces: Faces, t, y, args, support, h, y1):
         y_tau, _ = _rk_step(settings, f, t, tau, y, args)
         return _onto_piece(roll, faces.radius, y_tau)
 
-    def push(y_tau):
-        return _roll_guards(f, faces, roll, piece, y_tau)[0]
+    def guards(y_tau):
+        """The push and the nearest region bound, as two values."""
+        push, bounds = _roll_guards(f, faces, roll, piece, y_tau)
+        return jnp.stack([push, jnp.min(bounds)])
 
-    def bound(y_tau):
-        return jnp.min(_roll_guards(f, faces, roll, piece, y_tau)[1])
-
-    def crossing(guard, crossed):
-        """The first time in the step at which ``guard`` is negative (inf if not at its end;
-        0 if already at its start: past an edge's end the corner asks for the centripetal
-        push of the speed along the edge too, and a ball whose push that makes negative
-        leaves at once)."""
+    def cut(crossed):
+        # Each guard by a bisection of its own, and the earlier wins: deciding which one a
+        # single bisection stopped on, from signs at its end, is a guess where both are at
+        # rounding's distance from 0. The two bisections run side by side, guard k at
+        # midpoint k. A guard crossed by the step's end is found at the first time it is
+        # negative; 0 if already at the start (past an edge's end the corner asks for the
+        # centripetal push of the speed along the edge too, and a ball whose push that
+        # makes negative leaves at once); one not crossed, never (inf).
         def halve(_, lo_hi):
             lo, hi = lo_hi
             mid = 0.5 * (lo + hi)
-            out = guard(at(mid)) < 0
+            out = jnp.diagonal(jax.vmap(lambda tau: guards(at(tau)))(mid)) < 0
             return jnp.where(out, lo, mid), jnp.where(out, mid, hi)
 
-        tau = jnp.where(guard(y) < 0, 0.0, jax.lax.fori_loop(0, ROLL_BISECTIONS, halve, (0.0 * h, h))[1])
-        return jnp.where(crossed, tau, jnp.inf)
-
-    def cut():
-        # Each guard by a bisection of its own, and the earlier wins: deciding which one a
-        # single bisection stopped on, from signs at its end, is a guess where both are at
-        # rounding's distance from 0.
-        tau_push = crossing(push, push(y1) < 0)
-        tau_bound = crossing(bound, bound(y1) < 0)
+        span = jnp.broadcast_to(h, (2,))
+        tau_k = jnp.where(guards(y) < 0, 0.0, jax.lax.fori_loop(0, ROLL_BISECTIONS, halve, (0.0 * span, span))[1])
+        tau_push, tau_bound = jnp.where(crossed, tau_k, jnp.inf)
         tau = jnp.minimum(tau_push, tau_bound)
         y_e = at(tau)
         kind = jnp.where(tau_push <= tau_bound, STEP_DETACH, STEP_EXIT).astype(jnp.int32)
@@ -396,8 +392,10 @@ def _roll_end(settings, f, faces: Faces, t, y, args, support, h, y1):
         return jnp.bool_(True), kind, piece.astype(jnp.int32), which, tau, y_e
 
     y1 = _onto_piece(roll, faces.radius, y1)
-    return jax.lax.cond((push(y1) < 0) | (bound(y1) < 0), cut,
-                        lambda: (jnp.bool_(False), jnp.int32(STEP_CONTACT), jnp.int32(-1), jnp.int32(0), h, y1))
+    crossed = guards(y1) < 0
+    return jax.lax.cond(jnp.any(crossed), cut,
+                        lambda _: (jnp.bool_(False), jnp.int32(STEP_CONTACT), jnp.int32(-1), jnp.int32(0), h, y1),
+                        crossed)
 
 
 def _exit_bound(faces: Faces, face, q):
@@ -415,13 +413,16 @@ def _event_time(settings, f, t, y, args, guard, tau0):
         y1, _ = _rk_step(settings, f, t, tau, y, args)
         return _guard_at(guard, y1[:3], y1[3:6])
 
-    def body(_, tau):
+    def body(i, carry):
+        # One more trip than iterations, which only evaluates: the guard at the last
+        # iterate without a second copy of the step in the program.
+        tau, _ = carry
         val, slope = g(tau)
-        safe = jnp.abs(slope) > SPEED_TOL
-        return jnp.maximum(tau - jnp.where(safe, val / jnp.where(safe, slope, 1.0), 0.0), 0.0)
+        safe = (jnp.abs(slope) > SPEED_TOL) & (i < NEWTON_ITERATIONS)
+        return jnp.maximum(tau - jnp.where(safe, val / jnp.where(safe, slope, 1.0), 0.0), 0.0), val
 
-    tau = jax.lax.fori_loop(0, NEWTON_ITERATIONS, body, tau0)
-    return tau, jnp.abs(g(tau)[0])
+    tau, val = jax.lax.fori_loop(0, NEWTON_ITERATIONS + 1, body, (tau0, 0.0 * tau0))
+    return tau, jnp.abs(val)
 
 
 def _zeno(faces: Faces, gravity, air, law: AbstractContactLaw, params, face, p, v, slack, t_left, cut=None):
