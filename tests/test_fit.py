@@ -22,7 +22,7 @@ import estim
 from estim._json import dumps
 from estim.fitting import _registry as registry
 from estim.fitting._fit import PARAMETERS, _plan_at, _Problem, _residuals
-from estim.fitting._loss import robust_loss
+from estim.fitting._loss import ROBUST_LOSSES, robust_curvature, robust_loss, robust_weight
 from estim.forward._trajectory import REST
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -381,3 +381,17 @@ def test_real_table_drops():
     for name, e, se, *_ in rows:
         assert 0.6 < e < 0.95, (name, e)
         assert math.isfinite(se) and se > 0, (name, se)
+
+
+@pytest.mark.parametrize("kind", ROBUST_LOSSES)
+def test_robust_weight_and_curvature_are_the_losss_derivatives(kind):
+    """u w(u) = rho'(u) and robust_curvature(u) = rho''(u), against central differences of
+    the loss (away from Huber's kink at c, where rho'' jumps)."""
+    u = np.concatenate([np.linspace(-9.0, 9.0, 181), [0.0, 1e-3, 2.385, 5.0]])
+    u = u[np.abs(np.abs(u) - 1.345) > 1e-2]
+    h = 1e-4
+    d1 = (robust_loss(u + h, kind) - robust_loss(u - h, kind)) / (2 * h)
+    d2 = (robust_loss(u + h, kind) - 2 * robust_loss(u, kind) + robust_loss(u - h, kind)) / h**2
+    np.testing.assert_allclose(u * robust_weight(u, kind), d1, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(robust_curvature(u, kind), d2, rtol=0, atol=1e-5)
+

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["ROBUST_LOSSES", "robust_loss", "robust_weight"]
+__all__ = ["ROBUST_LOSSES", "robust_curvature", "robust_loss", "robust_weight"]
 
 ROBUST_LOSSES = ("l2", "huber", "cauchy")
 _HUBER_C = 1.345
@@ -57,4 +57,20 @@ def robust_weight(u, kind: str):
         return xp.where(a <= _HUBER_C, 1.0, _HUBER_C / xp.maximum(a, _HUBER_C))
     if kind == "cauchy":
         return 1.0 / (1.0 + (u / _CAUCHY_C) ** 2)
+    raise ValueError(f"unknown robust loss {kind!r}; choose one of {ROBUST_LOSSES}")
+
+
+def robust_curvature(u, kind: str):
+    """rho''(u), the slope of the influence function psi(u) = rho'(u) = u w(u): the
+    weight of a residual in the Hessian of the loss (the "bread" of an M-estimator's
+    covariance, Huber 1967), where IRLS uses w(u). Negative for the Cauchy loss beyond
+    |u| = c, 0 for Huber's beyond c."""
+    xp = array_namespace(u)
+    if kind == "l2":
+        return xp.ones_like(u)
+    if kind == "huber":
+        return xp.where(xp.abs(u) <= _HUBER_C, 1.0, 0.0)
+    if kind == "cauchy":
+        a2 = (u / _CAUCHY_C) ** 2
+        return (1.0 - a2) / (1.0 + a2) ** 2
     raise ValueError(f"unknown robust loss {kind!r}; choose one of {ROBUST_LOSSES}")
