@@ -26,9 +26,9 @@ ball across all clips. The pipeline:
    simulation and Jacobian in a loop over the units (``estim.fitting._sharding.per_unit``),
    the sums over units reductions over that axis, so the same program runs sharded: the
    unit axis split over every device JAX sees (``jax.sharding``; each device loops over
-   its own units), the sums becoming all-reduces. Units that reached their noise floor alone but not together restart
-   their own values from their one-by-one fit, then from the data's start, and the joint
-   fit is kept where its loss falls.
+   its own units), the sums becoming all-reduces. Units that reached their noise floor
+   alone but not together restart their own values from their one-by-one fit, then from
+   the data's start, and the joint fit is kept where its loss falls.
 3. **Uncertainty** of the shared values, from the Schur complement at the optimum: unit i
    carries the information ``M_i = H_aa,i - H_ab,i H_bb,i^-1 H_ba,i`` about a (its own
    values profiled out) and the efficient score ``q_i = g_a,i - H_ab,i H_bb,i^-1 g_b,i``.
