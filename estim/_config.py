@@ -153,9 +153,13 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
 # as fast (measured on the 2-core reference machine, jax 0.10.2).
 FAST_COMPILE = (("xla_cpu_use_fusion_emitters", False),)
 # A fit compiles one program per process and runs it a few times (window, all data,
-# restarts): unoptimised machine code compiles it in 5.0 s instead of 7.0 s, for about
-# 0.1 s more run time per fit of the bundled tracks.
-FIT_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
+# restarts). In a vacuum (the closed form) XLA's default optimisation: at level 0 the
+# program of the bundled staircase compiled 0.3 s faster and ran 5.5 times slower (60 balls,
+# 458 against 83 us per ball and iteration). On the ODE path level 0: the table-tennis
+# shot's fit compiled in 7.1 s instead of 13.1 s, for 0.13 s against 0.04 s per fit, and a
+# fit is most often one process's only run (2-core reference machine, jax 0.10.2).
+FIT_COMPILE = FAST_COMPILE
+FIT_ODE_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
 # The closed-form `simulate`, one loop kernel (SMALL_LOOP_BYTES), with LLVM's level-1
 # optimisation. Chosen when its planning loop alone was a kernel (3 balls compiled in 4.4 s
 # instead of 5.2 s, ran as fast); as one loop over balls, levels 1 and 3 are within noise

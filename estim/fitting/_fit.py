@@ -33,6 +33,7 @@ the other: ``estim.fitting._sharding.per_unit``):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -44,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import FIT_COMPILE, jit, require_x64
+from .._config import FIT_COMPILE, FIT_ODE_COMPILE, jit, require_x64
 from ..forward import _ode
 from ..forward._balls import check_outside
 from ..forward._contact import has_edges
@@ -142,6 +143,22 @@ def _model(scene: Scene, phi, problem: _Problem):
     params = registry.to_params(values, radius=problem.radius, mass=problem.mass, inertia=problem.inertia, scene=scene)
     ts = jnp.clip(_clock(phi, problem) - values["t0"], 0.0, None)
     return params, ts, jnp.maximum(jnp.max(ts), 1e-3)
+
+
+def fit_program(fun):
+    """``fun`` (a fit's program, whose first argument is the scene) compiled with the
+    options of the scene's path: ``FIT_COMPILE`` for the closed form, ``FIT_ODE_COMPILE``
+    for the ODE path (``estim._config`` says why they differ)."""
+    programs = {}
+
+    @functools.wraps(fun)
+    def call(scene, *args, **kwargs):
+        kind = path(scene)
+        if kind not in programs:
+            programs[kind] = jit(fun, options=FIT_ODE_COMPILE if kind == ODE else FIT_COMPILE)
+        return programs[kind](scene, *args, **kwargs)
+
+    return call
 
 
 def _ode_settings():
@@ -891,7 +908,7 @@ def _at_floor(diag, i, noise) -> bool:
     return rms <= 1.3 * noise
 
 
-@jit(options=FIT_COMPILE)
+@fit_program
 def _run(scene, free, loss, steps, max_segments, theta, batch, mesh=None):
     """Levenberg-Marquardt on the robust loss, every ball at once: ``steps`` iterations.
 

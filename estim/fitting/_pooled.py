@@ -77,7 +77,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import FIT_COMPILE, jit, require_x64
+from .._config import require_x64
 from ..model._scene import Scene
 from . import _registry as registry
 from ._fit import (
@@ -92,6 +92,7 @@ from ._fit import (
     _report,
     _run,
     explain_misfit,
+    fit_program,
 )
 from ._loss import robust_curvature, robust_weight
 from ._sharding import gather, mesh_of, padded_size, per_unit, place
@@ -300,7 +301,7 @@ def _arrow_step(shared_idx, local_idx, group, real, state: _Arrow, J, u, w, valu
     )
 
 
-@jit(options=FIT_COMPILE)
+@fit_program
 def _run_joint(scene, free, shared_idx, local_idx, loss, steps, max_segments, state: _Arrow, best,
                batch, group, real, mesh=None):
     """``steps`` joint iterations from ``state``; returns the state, the loss per ball per

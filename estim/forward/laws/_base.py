@@ -38,6 +38,7 @@ defaults below). The spin is carried from contact to contact on the ODE path
 from __future__ import annotations
 
 import abc
+import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -85,15 +86,9 @@ class AbstractContactLaw(eqx.Module):
         """The :class:`estim.Params` fields ``coefficients`` reads (``{"e", "mu_t"}`` for
         the factor law): read off the traced program of ``coefficients``, so it cannot
         disagree with it. A fit estimates only the law's coefficients a scene's law reads
-        (``estim.fitting._registry.acts``)."""
-        probe = Params(0.5, 0.5, 1.0, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), mass=1.0)
-        leaves, structure = jax.tree_util.tree_flatten_with_path(probe)
-        closed = jax.make_jaxpr(lambda *x: self.coefficients(jax.tree.unflatten(structure, x)))(
-            *(leaf for _, leaf in leaves))
-        used = {id(v) for eqn in closed.jaxpr.eqns for v in eqn.invars}
-        used |= {id(v) for v in closed.jaxpr.outvars}
-        return frozenset(path[0].name for (path, _), var in zip(leaves, closed.jaxpr.invars, strict=True)
-                         if id(var) in used)
+        (``estim.fitting._registry.acts``). Traced once per law (a fit asks for every
+        parameter of every ball it reports)."""
+        return _reads(self)
 
     @property
     def couples_spin(self) -> bool:
@@ -238,3 +233,16 @@ class AbstractSummableLaw(AbstractContactLaw):
         pre = v_s + (s.a_t + s.a_n * s.normal) * tau
         return t, x, pre, post, (t_s, x_s, v_s)
 
+
+@functools.cache
+def _reads(law: AbstractContactLaw) -> frozenset[str]:
+    """``law.reads()``, traced once per law (laws are field-free modules, so equal and
+    hashable)."""
+    probe = Params(0.5, 0.5, 1.0, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0), mass=1.0)
+    leaves, structure = jax.tree_util.tree_flatten_with_path(probe)
+    closed = jax.make_jaxpr(lambda *x: law.coefficients(jax.tree.unflatten(structure, x)))(
+        *(leaf for _, leaf in leaves))
+    used = {id(v) for eqn in closed.jaxpr.eqns for v in eqn.invars}
+    used |= {id(v) for v in closed.jaxpr.outvars}
+    return frozenset(path[0].name for (path, _), var in zip(leaves, closed.jaxpr.invars, strict=True)
+                     if id(var) in used)
