@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import STAIRS_XML, jax_path, seed_params
+from conftest import ROOT, STAIRS_XML, jax_path, seed_params
 
 import estim
 from estim import _config
@@ -108,6 +108,26 @@ def test_event_loops_compile_to_one_kernel():
     # The forward call is one such kernel: the loop over balls, with everything inside.
     entry = _entry(sim_hlo)
     assert len(re.findall(r"= .* call\(", entry)) == 1, "simulate is not one loop kernel"
+
+
+@pytest.mark.skipif(not _config.SMALL_LOOPS_AS_KERNELS, reason="XLA's backend started before estim")
+def test_the_air_paths_step_loop_with_round_edges_is_one_kernel():
+    """On the ODE path in a scene with exact geometry (a table whose edges and corners are
+    round, searched with quartic contact times) the step loop and its derivative replay are
+    each one kernel: no ``sort`` (a call into XLA's runtime library) inside them."""
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "drop_air.xml")
+    shot = estim.Params.for_ball(scene, "pingpong", e=0.88, mu_t=0.75, position=(-0.9, 0.0, 0.25),
+                                 velocity=(4.5, 0.0, 0.6), spin=(0.0, 120.0, 0.0))
+
+    def final_x(vx):
+        return estim.simulate(scene, eqx.tree_at(lambda p: p.velocity, shot, shot.velocity.at[0].set(vx)),
+                              0.42, keep=()).final.position[0]
+
+    for hlo in (jax.jit(final_x).lower(4.5).compile().as_text(),
+                jax.jit(jax.jacfwd(final_x)).lower(4.5).compile().as_text()):
+        owners = _loop_owners(hlo)
+        assert owners and all(name.endswith("_computation") for name in owners), owners
+        assert not re.search(r"\bsort\(", hlo)
 
 
 def _simulate_hlo(scene, params):

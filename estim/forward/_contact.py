@@ -54,7 +54,7 @@ from ._constants import (
     SPEED_TOL,
     TIE_TIME,
 )
-from ._curved import distance_terms, entering_times, implicit_time, piece_normal
+from ._curved import distance_terms, entering_times, implicit_time, inner, piece_normal
 
 
 class Faces(eqx.Module):
@@ -213,13 +213,6 @@ def entering_time(
     hop = touching & ~future & (g1 > SPEED_TOL) & (g2 < 0)
     back = -2.0 * g1 / jnp.where(g2 < 0, g2, -1.0)
     return jnp.where(touching & pushed, 0.0, jnp.where(future & ~along, tau, jnp.where(hop, back, jnp.inf)))
-
-
-def inner(x: Float[Array, "*n 3"], y: Float[Array, "*n 3"]) -> Float[Array, "*n"]:
-    """``x . y`` over the last axis of 3, written out: XLA:CPU compiles a ``dot`` as a call
-    into a linear-algebra library, and one such call in an event loop keeps the whole loop
-    from being compiled into a single kernel (``estim._config``)."""
-    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
 
 
 def ballistic(p, v, a, tau):

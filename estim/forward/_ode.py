@@ -206,7 +206,7 @@ def _vector_field(air, gravity, params):
         v, w = y[3:6], y[6:]
         a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, w, v, params.lift_factor)
         a = jnp.where(sliding, a - inner(a, n_sup) * n_sup, a)
-        push = inner(a, n_wall)  # (written out: a dot would be a library call, estim.forward._contact.inner)
+        push = inner(a, n_wall)  # (written out: a dot would be a library call, estim.forward._curved.inner)
         a = jnp.where(push < 0, a - push * n_wall, a)
         n, rho, across2 = _on_piece(anchor, mask, y)
         a = jnp.where(rolling, a - inner(a, n) * n - across2 / rho * n, a)
@@ -287,7 +287,7 @@ def _rk_step(settings, f, t, h, y, args):
     a, b_sol, b_err = jnp.asarray(a), jnp.asarray(tab.b_sol), jnp.asarray(tab.b_error)
 
     def stage(i, ks):
-        # (a weighted sum written out: a dot would be a library call, estim.forward._contact.inner)
+        # (a weighted sum written out: a dot would be a library call, estim.forward._curved.inner)
         incr = jnp.sum(a[i][:, None] * ks, axis=0)
         return ks.at[i].set(f(y + h * incr, args))
 
