@@ -155,11 +155,18 @@ FAST_COMPILE = (("xla_cpu_use_fusion_emitters", False),)
 # A fit compiles one program per process and runs it a few times (window, all data,
 # restarts). In a vacuum (the closed form) XLA's default optimisation: at level 0 the
 # program of the bundled staircase compiled 0.3 s faster and ran 5.5 times slower (60 balls,
-# 458 against 83 us per ball and iteration). On the ODE path level 0: the table-tennis
-# shot's fit compiled in 7.1 s instead of 13.1 s, for 0.13 s against 0.04 s per fit, and a
-# fit is most often one process's only run (2-core reference machine, jax 0.10.2).
+# 458 against 83 us per ball and iteration). On the ODE path the compile is the larger
+# cost: the table-tennis shot's fit program (estim bench fit's TABLE_SHOT) compiled and ran
+# in 6.8 s and 85 ms at level 0, 9.6 s and 17 ms at level 1, 10.3 s and 30 ms at level 2,
+# 13.3 s and 28 ms at the default (2-core reference machine, jax 0.10.2). A fit's program
+# is compiled at level 0 first (most processes fit once) and at level 1 once the same
+# program has run FIT_ODE_TIER_UP times in the process (many shots, many clips), where
+# the 2.8 s of a second compile pays for itself within a few fits
+# (``estim.fitting._fit.fit_program``).
 FIT_COMPILE = FAST_COMPILE
 FIT_ODE_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
+FIT_ODE_OPTIMISED = FAST_COMPILE + (("xla_backend_optimization_level", 1),)
+FIT_ODE_TIER_UP = 8
 # The closed-form `simulate`, one loop kernel (SMALL_LOOP_BYTES), with LLVM's level-1
 # optimisation. Chosen when its planning loop alone was a kernel (3 balls compiled in 4.4 s
 # instead of 5.2 s, ran as fast); as one loop over balls, levels 1 and 3 are within noise

@@ -395,3 +395,27 @@ def test_robust_weight_and_curvature_are_the_losss_derivatives(kind):
     np.testing.assert_allclose(u * robust_weight(u, kind), d1, rtol=0, atol=1e-7)
     np.testing.assert_allclose(robust_curvature(u, kind), d2, rtol=0, atol=1e-5)
 
+
+
+def test_fit_programs_compile_by_path_and_tier_up_on_the_ode_path(monkeypatch):
+    """A fit's program is compiled with the closed form's options in a vacuum; in air with
+    the quick options for its first ``FIT_ODE_TIER_UP`` calls of one signature, then with
+    the optimised ones (``estim._config``), counted per signature."""
+    from estim import _config
+    from estim.fitting import _fit
+
+    used = []
+    monkeypatch.setattr(_fit, "jit", lambda fun, options: lambda *a, **k: used.append(options) or fun(*a, **k))
+    program = _fit.fit_program(lambda scene, x, n: x * n)
+    vacuum = estim.load_scene(Path(__file__).resolve().parents[1] / "data" / "scenes" / "drop.xml")
+    air = estim.load_scene(Path(__file__).resolve().parents[1] / "data" / "scenes" / "drop_air.xml")
+    n = _config.FIT_ODE_TIER_UP
+    for _ in range(n + 2):
+        assert float(program(vacuum, np.float64(2.0), 3)) == 6.0
+    assert used == [_config.FIT_COMPILE] * (n + 2)
+    used.clear()
+    for _ in range(n + 1):
+        program(air, np.ones(2), 3)
+    program(air, np.ones(3), 3)  # another shape: another signature
+    program(air, np.ones(2), 4)  # another static value: another signature
+    assert used == [_config.FIT_ODE_COMPILE] * n + [_config.FIT_ODE_OPTIMISED] + [_config.FIT_ODE_COMPILE] * 2

@@ -32,6 +32,7 @@ the other: ``estim.fitting._sharding.per_unit``):
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import math
@@ -45,7 +46,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import FIT_COMPILE, FIT_ODE_COMPILE, jit, require_x64
+from .._config import (
+    FIT_COMPILE,
+    FIT_ODE_COMPILE,
+    FIT_ODE_OPTIMISED,
+    FIT_ODE_TIER_UP,
+    jit,
+    require_x64,
+)
 from ..forward import _ode
 from ..forward._balls import check_outside
 from ..forward._contact import has_edges
@@ -147,18 +155,29 @@ def _model(scene: Scene, phi, problem: _Problem):
 
 def fit_program(fun):
     """``fun`` (a fit's program, whose first argument is the scene) compiled with the
-    options of the scene's path: ``FIT_COMPILE`` for the closed form, ``FIT_ODE_COMPILE``
-    for the ODE path (``estim._config`` says why they differ)."""
-    programs = {}
+    options of the scene's path: ``FIT_COMPILE`` for the closed form; on the ODE path
+    ``FIT_ODE_COMPILE`` (quick to compile, slow to run) for the first ``FIT_ODE_TIER_UP``
+    calls with one signature (shapes, dtypes and static values of the arguments), then
+    ``FIT_ODE_OPTIMISED`` (``estim._config`` gives the figures). The two programs give the
+    same fits to rounding."""
+    closed_form = jit(fun, options=FIT_COMPILE)
+    quick, optimised = jit(fun, options=FIT_ODE_COMPILE), jit(fun, options=FIT_ODE_OPTIMISED)
+    calls = collections.Counter()
 
     @functools.wraps(fun)
     def call(scene, *args, **kwargs):
-        kind = path(scene)
-        if kind not in programs:
-            programs[kind] = jit(fun, options=FIT_ODE_COMPILE if kind == ODE else FIT_COMPILE)
-        return programs[kind](scene, *args, **kwargs)
+        if path(scene) != ODE:
+            return closed_form(scene, *args, **kwargs)
+        leaves, structure = jax.tree.flatten((scene, args, kwargs))
+        signature = (structure, tuple((np.shape(x), getattr(x, "dtype", type(x))) if _is_array(x) else x for x in leaves))
+        calls[signature] += 1
+        return (optimised if calls[signature] > FIT_ODE_TIER_UP else quick)(scene, *args, **kwargs)
 
     return call
+
+
+def _is_array(x) -> bool:
+    return isinstance(x, (np.ndarray, jax.Array, np.generic, float, complex)) and not isinstance(x, bool)
 
 
 def _ode_settings():
