@@ -97,6 +97,10 @@ SUBSET_MIN = 8
 # deviation is reported as held by the prior (the data add less than about 1.3 times the
 # prior's information).
 PRIOR_DECIDES = 0.8
+# A ball's iterations stop once its best loss has not fallen by more than SETTLED_TOL of
+# itself over SETTLED of them (``_settled``).
+SETTLED = 10
+SETTLED_TOL = 1e-9
 
 
 class _Problem(eqx.Module):
@@ -929,32 +933,48 @@ def _at_floor(diag, i, noise) -> bool:
 
 @fit_program
 def _run(scene, free, loss, steps, max_segments, theta, batch, mesh=None):
-    """Levenberg-Marquardt on the robust loss, every ball at once: ``steps`` iterations.
+    """Levenberg-Marquardt on the robust loss, ball by ball: at most ``steps`` iterations,
+    fewer where the loss has settled (``_settled``).
 
-    Returns the best point per ball, the loss histories ``(balls, steps)``, and the
-    residuals, Jacobian (with respect to theta), validity mask, model positions and impact
-    count at the best point. Each iteration plans, linearises and steps one ball after the
-    other (``estim.fitting._sharding.per_unit``, over the devices of ``mesh``); a ball's
-    replay runs only the slots its own plan uses (``estim.forward._scan``).
+    Returns the best point per ball, the loss histories ``(balls, steps)`` (a ball that
+    stopped early repeats its last value), and the residuals, Jacobian (with respect to
+    theta), validity mask, model positions and impact count at the best point. Each ball
+    runs its own loop of iterations, one ball after the other
+    (``estim.fitting._sharding.per_unit``, over the devices of ``mesh``); a ball's replay
+    runs only the slots its own plan uses (``estim.forward._scan``).
     """
     m = batch.obs[0].size  # residuals per ball
-    n_balls, n_theta = theta.shape
-    best = (
-        jnp.zeros((n_balls, m)),
-        jnp.zeros((n_balls, m, n_theta)),
-        (jnp.zeros((n_balls, m), bool), jnp.zeros(batch.obs.shape), jnp.zeros(n_balls, jnp.int32)),
-    )
-    carry = (theta, jax.vmap(_LM.init)(theta), best)
+    n_theta = theta.shape[1]
 
-    def one(c, pr):
-        pl, used = _plan_at(scene, registry.to_physical(c[0], free, pr.fixed), pr, max_segments)
-        return _lm_step(scene, free, loss, c, pr, pl, used)
+    def one(theta, pr):
+        best = (jnp.zeros(m), jnp.zeros((m, n_theta)), (jnp.zeros(m, bool), jnp.zeros(pr.obs.shape), jnp.int32(0)))
 
-    def step(carry, _):
-        return per_unit(one, mesh, carry, batch)
+        def going(loop):
+            k, _, history = loop
+            return (k < steps) & ~_settled(history, k)
 
-    (_, state, best), history = jax.lax.scan(step, carry, None, length=steps)
-    return state.best_params, history.T, best
+        def iteration(loop):
+            k, c, history = loop
+            pl, used = _plan_at(scene, registry.to_physical(c[0], free, pr.fixed), pr, max_segments)
+            c, value = _lm_step(scene, free, loss, c, pr, pl, used)
+            return k + 1, c, history.at[k].set(value)
+
+        k, (_, state, best), history = jax.lax.while_loop(
+            going, iteration, (jnp.int32(0), (theta, _LM.init(theta), best), jnp.full(steps, jnp.inf)))
+        return state.best_params, jnp.where(jnp.arange(steps) < k, history, history[k - 1]), best
+
+    return per_unit(one, mesh, theta, batch)
+
+
+def _settled(history, k):
+    """Whether a ball's best loss (``history``, non-increasing, its first ``k`` entries
+    filled) fell by at most ``SETTLED_TOL`` of itself (or of 1) over its last ``SETTLED``
+    iterations: more iterations would not move it (the report then calls it converged,
+    ``_report``). Ten, not fewer: a camera fit of 15 frames went on improving (1.49 to
+    1.37 px rms) after five iterations without progress."""
+    last = history[jnp.maximum(k - 1, 0)]
+    first = history[jnp.maximum(k - SETTLED, 0)]
+    return (k >= SETTLED) & (first - last <= SETTLED_TOL * jnp.maximum(jnp.abs(last), 1.0))
 
 
 def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_floor, noise) -> BallFit:

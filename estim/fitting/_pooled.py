@@ -82,6 +82,7 @@ from ..model._scene import Scene
 from . import _registry as registry
 from ._fit import (
     PARAMETERS,
+    SETTLED,
     FitResult,
     _at_floor,
     _fit_all,
@@ -444,16 +445,16 @@ def fit_clips(
             np.zeros((padded, m)), np.zeros((padded, m, len(free))),
             (np.zeros((padded, m), bool), np.zeros(batch.obs.shape), np.zeros(padded, np.int32))))
         histories = []
-        chunk = 10
+        chunk = 5
         for done in range(0, joint_steps, chunk):
             state, history, best = _run_joint(scene, free, shared_idx, local_idx, loss, min(chunk, joint_steps - done),
                                               max_segments, state, best, *placed, mesh)
             histories.append(np.asarray(gather(history)))
             say(f"joint fit: step {min(done + chunk, joint_steps)}/{joint_steps}, loss "
                 + ", ".join(f"{b} {v:.2f}" for b, v in zip(balls, histories[-1][:, -1], strict=True)))
-            last = histories[-1]
-            if done and np.all(np.abs(last[:, 0] - last[:, -1]) <= 1e-6 * np.maximum(np.abs(last[:, -1]), 1.0)):
-                break  # a whole chunk without progress (the single fit's test): converged
+            run = np.concatenate(histories, axis=1)[:, -SETTLED:]
+            if run.shape[1] == SETTLED and np.all(run[:, 0] - run[:, -1] <= 1e-6 * np.maximum(np.abs(run[:, -1]), 1.0)):
+                break  # SETTLED iterations without progress (as a single fit's _settled): converged
         theta_best, diag = gather((state.best_theta, best))
         diag = jax.tree.map(lambda x: np.array(x[:n_units]), diag)  # writable copies
         return np.array(theta_best[:n_units]), np.concatenate(histories, axis=1), diag
