@@ -19,7 +19,9 @@ import numpy as np
 import pytest
 
 import estim
+from estim import _config
 from estim._json import dumps
+from estim.fitting import _fit
 from estim.fitting import _registry as registry
 from estim.fitting._fit import PARAMETERS, _plan_at, _Problem, _residuals
 from estim.fitting._loss import ROBUST_LOSSES, robust_curvature, robust_loss, robust_weight
@@ -401,9 +403,6 @@ def test_fit_programs_compile_by_path_and_tier_up_on_the_ode_path(monkeypatch):
     """A fit's program is compiled with the closed form's options in a vacuum; in air with
     the quick options for its first ``FIT_ODE_TIER_UP`` calls of one signature, then with
     the optimised ones (``estim._config``), counted per signature."""
-    from estim import _config
-    from estim.fitting import _fit
-
     used = []
     monkeypatch.setattr(_fit, "jit", lambda fun, options: lambda *a, **k: used.append(options) or fun(*a, **k))
     program = _fit.fit_program(lambda scene, x, n: x * n)

@@ -454,7 +454,7 @@ def fit_clips(
                 + ", ".join(f"{b} {v:.2f}" for b, v in zip(balls, histories[-1][:, -1], strict=True)))
             run = np.concatenate(histories, axis=1)[:, -SETTLED:]
             if run.shape[1] == SETTLED and np.all(run[:, 0] - run[:, -1] <= 1e-6 * np.maximum(np.abs(run[:, -1]), 1.0)):
-                break  # SETTLED iterations without progress (as a single fit's _settled): converged
+                break  # SETTLED iterations within 1e-6 (the report's test of convergence): converged
         theta_best, diag = gather((state.best_theta, best))
         diag = jax.tree.map(lambda x: np.array(x[:n_units]), diag)  # writable copies
         return np.array(theta_best[:n_units]), np.concatenate(histories, axis=1), diag
