@@ -20,7 +20,7 @@ from conftest import ROOT, G, box_distance
 
 import estim
 from estim.forward._constants import ROLL
-from estim.forward._curved import entering_times
+from estim.forward._curved import _sorted, entering_times
 from estim.forward._roll import Roll
 
 PROBE = '<body name="probe" mocap="true"><geom name="probe" type="sphere" size="0.05" contype="0" conaffinity="0"/></body>'
@@ -395,3 +395,13 @@ def test_random_slides_off_treads_roll_and_stay_outside(path):
     assert depth.min() >= -1e-9 and np.min(q[done, :, 2] - r[done, None]) >= -1e-9
     energy = G * q[done, :, 2] + 0.5 * np.sum(v[done] ** 2, axis=-1)
     assert np.max(np.diff(energy, axis=1)) <= (1e-12 if path == "closed_form" else 1e-8)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 6, 7])
+def test_the_sorting_network_sorts(n):
+    """The contact search's sorting network (minima and maxima, no ``sort`` in the step
+    loop) against NumPy's sort, with ties and infinities, along the last axis of a batch."""
+    rng = np.random.default_rng(n)
+    x = rng.choice([-1.0, 0.0, 0.5, 2.0, np.inf, -np.inf, 3.25], size=(200, n))
+    x[:100] = rng.normal(size=(100, n))
+    np.testing.assert_array_equal(np.asarray(_sorted(jnp.asarray(x))), np.sort(x, axis=-1))
