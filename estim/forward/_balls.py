@@ -118,7 +118,7 @@ def inside(xp, scene: Scene, p, r, path: bool = False):
         beyond = xp.sum((excess > 0).astype(excess.dtype), axis=-1)
         box = (beyond <= 1) & (xp.sum(excess, axis=-1) < r[:, None] - INSIDE_DEPTH)
     n, s = xp.asarray(scene.plane_normal), xp.asarray(scene.plane_offset)
-    height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim.forward._curved.inner)
+    height = sum(p[:, None, k] * n[None, :, k] for k in range(3))  # p @ n.T, written out (estim._fold.inner)
     return box, height < s[None] + r[:, None] - INSIDE_DEPTH
 
 

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._fold import inner
 from ..model._scene import Scene
 from ._constants import (
     ACCEL_TOL,
@@ -54,7 +55,7 @@ from ._constants import (
     SPEED_TOL,
     TIE_TIME,
 )
-from ._curved import distance_terms, entering_times, implicit_time, inner, piece_normal
+from ._curved import distance_terms, entering_times, implicit_time, piece_normal
 
 
 class Faces(eqx.Module):

@@ -45,23 +45,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._fold import inner
+
 __all__ = ["entering_times", "piece_normal", "distance_terms"]
 
 BISECTIONS = 24  # shrink a bracket by 2^-24 (6e-9 s on a 0.1 s window) ...
 NEWTONS = 6  # ... then Newton's method converges quadratically from there (to 1e-16 s).
-
-
-def inner(x: Float[Array, "*n 3"], y: Float[Array, "*n 3"]) -> Float[Array, "*n"]:
-    """``x . y`` over the last axis of 3, written out: XLA:CPU compiles a ``dot`` as a call
-    into a linear-algebra library, and one such call in an event loop keeps the whole loop
-    from being compiled into a single kernel (``estim._config``). One product, then its
-    components summed left to right: the same rounding as ``x0 y0 + x1 y1 + x2 y2`` (and
-    the native kernels'), in half the operations for JAX to differentiate and XLA to compile
-    (the table-tennis shot's fit program: 15,200 instead of 19,600; ``jnp.sum`` would make
-    13,700, but XLA's reduction order under ``vmap`` then differed from the kernels' by an
-    ulp)."""
-    p = x * y
-    return jnp.squeeze(p[..., 0:1] + p[..., 1:2] + p[..., 2:3], -1)
 
 
 def distance_terms(p, v, a, anchor, mask):

@@ -83,7 +83,7 @@ inline V3 operator+(V3 a, V3 b) { return v3(a[0] + b[0], a[1] + b[1], a[2] + b[2
 inline V3 operator-(V3 a, V3 b) { return v3(a[0] - b[0], a[1] - b[1], a[2] - b[2]); }
 inline V3 operator*(double s, V3 a) { return v3(s * a[0], s * a[1], s * a[2]); }
 inline V3 operator*(V3 a, double s) { return v3(a[0] * s, a[1] * s, a[2] * s); }
-// estim.forward._curved.inner: x0 y0 + x1 y1 + x2 y2, left to right
+// estim._fold.inner: x0 y0 + x1 y1 + x2 y2, left to right
 inline double inner(V3 a, V3 b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 inline bool all_finite(V3 a) { return std::isfinite(a[0]) && std::isfinite(a[1]) && std::isfinite(a[2]); }
 const V3 kZero = v3(0.0, 0.0, 0.0);

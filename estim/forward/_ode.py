@@ -80,6 +80,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
+from .._fold import first_least, least, some
 from ..model._air import acceleration, step_bounds
 from ._constants import (
     AXIS_TOL,
@@ -139,6 +140,13 @@ SLACK = 1e-6
 RTOL = 1e-9
 ATOL = 1e-10
 MAX_STEPS = 2048
+# Steps per chunk of the replay (``estim.forward._scan``): a chunk past the last step used
+# is skipped, one branch in the loop kernel, and the last chunk in use runs whole. With
+# chunks of sqrt(MAX_STEPS) = 45 steps a table-tennis shot (19 steps) replayed 45 and its
+# forward took 125 us; with chunks of 16, 118 us (one process, 2-core machine). Chunks of 8
+# were as fast, but XLA unrolls a loop of 8 trips: the shot's fit program then took 1.2 s
+# longer to compile.
+REPLAY_CHUNK = 16
 NEWTON_ITERATIONS = 6
 # Bisections of a roll step for the end of the roll (a step is at most 1 s: 2^-60 s).
 ROLL_BISECTIONS = 60
@@ -206,7 +214,7 @@ def _vector_field(air, gravity, params):
         v, w = y[3:6], y[6:]
         a = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, w, v, params.lift_factor)
         a = jnp.where(sliding, a - inner(a, n_sup) * n_sup, a)
-        push = inner(a, n_wall)  # (written out: a dot would be a library call, estim.forward._curved.inner)
+        push = inner(a, n_wall)  # (written out: a dot would be a library call, estim._fold.inner)
         a = jnp.where(push < 0, a - push * n_wall, a)
         n, rho, across2 = _on_piece(anchor, mask, y)
         a = jnp.where(rolling, a - inner(a, n) * n - across2 / rho * n, a)
@@ -287,7 +295,7 @@ def _rk_step(settings, f, t, h, y, args):
     a, b_sol, b_err = jnp.asarray(a), jnp.asarray(tab.b_sol), jnp.asarray(tab.b_error)
 
     def stage(i, ks):
-        # (a weighted sum written out: a dot would be a library call, estim.forward._curved.inner)
+        # (a weighted sum written out: a dot would be a library call, estim._fold.inner)
         incr = jnp.sum(a[i][:, None] * ks, axis=0)
         return ks.at[i].set(f(y + h * incr, args))
 
@@ -366,7 +374,7 @@ def _roll_end(settings, f, faces: Faces, t, y, args, support, h, y1):
     def guards(y_tau):
         """The push and the nearest region bound, as two values."""
         push, bounds = _roll_guards(f, faces, roll, piece, y_tau)
-        return jnp.stack([push, jnp.min(bounds)])
+        return jnp.stack([push, least(bounds)])
 
     def cut(crossed):
         # Each guard by a bisection of its own, and the earlier wins: deciding which one a
@@ -388,12 +396,12 @@ def _roll_end(settings, f, faces: Faces, t, y, args, support, h, y1):
         tau = jnp.minimum(tau_push, tau_bound)
         y_e = at(tau)
         kind = jnp.where(tau_push <= tau_bound, STEP_DETACH, STEP_EXIT).astype(jnp.int32)
-        which = jnp.argmin(_roll_guards(f, faces, roll, piece, y_e)[1]).astype(jnp.int32)
+        which = first_least(_roll_guards(f, faces, roll, piece, y_e)[1])
         return jnp.bool_(True), kind, piece.astype(jnp.int32), which, tau, y_e
 
     y1 = _onto_piece(roll, faces.radius, y1)
     crossed = guards(y1) < 0
-    return jax.lax.cond(jnp.any(crossed), cut,
+    return jax.lax.cond(some(crossed), cut,
                         lambda _: (jnp.bool_(False), jnp.int32(STEP_CONTACT), jnp.int32(-1), jnp.int32(0), h, y1),
                         crossed)
 
@@ -403,7 +411,7 @@ def _exit_bound(faces: Faces, face, q):
     row = faces.row[jnp.maximum(face, 0)]
     sigma, beta = _edge_bounds(row)
     rel = jnp.repeat(q - row[CENTRE], 2)
-    return jnp.argmin(sigma * rel + beta).astype(jnp.int32)
+    return first_least(sigma * rel + beta)
 
 
 def _event_time(settings, f, t, y, args, guard, tau0):
@@ -487,7 +495,7 @@ def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duratio
     # ball points up: every flat face is axis-aligned, and edges and corners have no series).
     u = v.at[2].set(0.0)
     reach = train_reach(faces, f, p, u, w * w / (2.0 * gravity))
-    clear = jnp.linalg.norm(along[:2]) <= reach
+    clear = jnp.sqrt(along[0] ** 2 + along[1] ** 2) <= reach
     g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
     a_air = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, params.spin, v,
                          params.lift_factor) - g_vec
@@ -497,7 +505,7 @@ def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duratio
 def _zeno_time(a_air, slack):
     """The longest bounce series whose air acceleration ``a_air`` moves the ball by at most
     ``slack``: ``sqrt(2 slack / |a_air|)`` (inf without air)."""
-    air_scale = jnp.linalg.norm(a_air)
+    air_scale = jnp.sqrt(inner(a_air, a_air))
     return jnp.where(air_scale > 0, jnp.sqrt(2.0 * slack / jnp.where(air_scale > 0, air_scale, 1.0)), jnp.inf)
 
 
@@ -630,7 +638,8 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
             lambda: _roll_end(settings, f, faces, t, y, args, support, h_step, y1),
             lambda: (event, ev_kind, ev_face, bound, h_step, y1),
         )
-        dev = jnp.linalg.norm(y1[:3] - (p + v * h_step + 0.5 * a0 * h_step**2))
+        stray = y1[:3] - (p + v * h_step + 0.5 * a0 * h_step**2)
+        dev = jnp.sqrt(inner(stray, stray))
         keep = ((err <= 1.0) & ((dev <= settings.slack) | clear | rolling)) | (h_step <= 0.0) | zeno_ok
         by_error = 0.9 * jnp.where(err > 0, err, 1e-10) ** (-1.0 / order)
         by_slack = 0.9 * (settings.slack / jnp.where(dev > 0, dev, 1e-300)) ** (1.0 / 3.0)
@@ -799,7 +808,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
     none = jnp.int32(-1)
     unused = Step(jnp.int32(STEP_UNUSED), jnp.int32(FLIGHT), none, none, none, jnp.int32(0), jnp.float64(0.0))
     n_used = steps.kind.shape[0] if n_used is None else n_used
-    (t1, y1), nodes = scan_used(apply, init, steps, n_used, idle, unused)
+    (t1, y1), nodes = scan_used(apply, init, steps, n_used, idle, unused, REPLAY_CHUNK)
     return State(t1, y1[:3], y1[3:6]), nodes
 
 

@@ -7,6 +7,10 @@ scan pays for every slot. ``scan_used`` cuts the slots into ``C ~ sqrt(S)`` chun
 skips (``lax.cond``) each chunk that starts past the last slot in use, so the work is that
 of the used slots plus at most one chunk, and ``S / C`` branch decisions.
 
+Where the skipped chunks are cheap (a branch inside one compiled loop kernel, the ODE
+path's replay) and the slots used few (a table-tennis shot: 19 of 2048 ODE steps), a smaller
+chunk wastes fewer steps: the ODE path takes chunks of ``REPLAY_CHUNK`` (16) steps.
+
 The skip is a real branch only where the number of used slots is one number for the whole
 batch: inside ``vmap`` a per-ball count turns ``cond`` into ``select``, which runs both
 branches (correct, no saving). So the ODE path plans all balls first and passes the batch's
@@ -24,16 +28,16 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def scan_used(f: Callable, init, xs, n_used, idle: Callable, fill):
+def scan_used(f: Callable, init, xs, n_used, idle: Callable, fill, chunk: int | None = None):
     """``lax.scan(f, init, xs)`` for a scan whose items from ``n_used`` on are idle.
 
     An idle item (``fill``, and every item of ``xs`` from index ``n_used``) must leave the
     carry unchanged, and ``f`` must return ``idle(carry)`` for it: chunks made of idle items
     only are not run but filled with ``idle(carry)``. ``n_used`` may be traced; where it is
-    batched the result is still exact.
+    batched the result is still exact. ``chunk``: items per chunk (default ``sqrt(S)``).
     """
     length = jax.tree.leaves(xs)[0].shape[0]
-    chunk = max(1, math.isqrt(length))
+    chunk = max(1, math.isqrt(length) if chunk is None else min(int(chunk), length))
     n_chunks = -(-length // chunk)
     pad = n_chunks * chunk - length
 

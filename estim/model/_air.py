@@ -54,6 +54,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._fold import inner
+
 __all__ = ["Air", "acceleration", "spin_for_lift", "step_bounds"]
 
 
@@ -119,11 +121,11 @@ def spin_for_lift(air: Air, radius: float, mass: float, velocity, lift, lift_fac
 def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity, lift_factor=1.0):
     """``a_quad + a_lin + a_magnus`` of eqs. (1)-(3) (m/s^2), for one ball."""
     w = velocity - air.wind
-    speed = jnp.sqrt(jnp.sum(w * w) + 1e-300)  # smooth at w = 0, where every term vanishes
+    speed = jnp.sqrt(inner(w, w) + 1e-300)  # smooth at w = 0, where every term vanishes
     area = jnp.pi * radius**2
     quad = -(air.density * drag_coefficient * area / (2.0 * mass)) * speed * w
     lin = -(6.0 * jnp.pi * air.viscosity * radius / mass) * w
-    kappa = lift_ratio(radius, jnp.sum(spin * spin), speed)
+    kappa = lift_ratio(radius, inner(spin, spin), speed)
     magnus = (lift_factor * air.density * area * radius / (2.0 * mass)) * kappa * jnp.cross(spin, w)
     return quad + lin + magnus
 
@@ -164,11 +166,11 @@ def step_bounds(air: Air | None, gravity, radius, mass, drag_coefficient, spin, 
     if air is None:
         return g + 0.0 * h, 0.0 * h
     w = velocity - air.wind
-    big_w = jnp.sqrt(jnp.sum(w * w)) + g * h
+    big_w = jnp.sqrt(inner(w, w)) + g * h
     area = jnp.pi * radius**2
     k = air.density * drag_coefficient * area / (2.0 * mass)
     c = 6.0 * jnp.pi * air.viscosity * radius / mass
-    omega = jnp.sqrt(jnp.sum(spin * spin))
+    omega = jnp.sqrt(inner(spin, spin))
     m = lift_factor * air.density * area * radius / (2.0 * mass)
     a_max = g + k * big_w**2 + c * big_w + KAPPA_MAX * m * omega * big_w
     lipschitz = 2.0 * k * big_w + c + m * (KAPPA_MAX * omega + LIFT_OFFSET * big_w / radius)
