@@ -67,13 +67,13 @@ def some(x, axis: int = -1) -> Bool[Array, "..."]:
 
 
 def first_least(x, axis: int = -1) -> Int[Array, "..."]:
-    """``jnp.argmin(x, axis)`` (int32) for values without NaN: the first index of the least
-    entry."""
+    """``jnp.argmin(x, axis)`` (int32): the first index of the least entry (with a NaN, an
+    index in range, not necessarily the NaN's)."""
     x = jnp.moveaxis(jnp.asarray(x), axis, -1)
     n = x.shape[-1]
     if not 0 < n <= LONGEST:
         return jnp.argmin(x, axis=-1).astype(jnp.int32)
-    return least(jnp.where(x == least(x)[..., None], jnp.arange(n, dtype=jnp.int32), n))
+    return least(jnp.where(x == least(x)[..., None], jnp.arange(n, dtype=jnp.int32), n - 1))
 
 
 def inner(x: Float[Array, "*n 3"], y: Float[Array, "*n 3"]) -> Float[Array, "*n"]:

@@ -61,3 +61,7 @@ def test_the_air_vector_field_and_step_bound_have_no_reducer():
     lin = -(6 * np.pi * 1.8e-5 * 0.02 / 0.0027) * rel
     no_spin = np.asarray(acceleration(air, 9.81, 0.02, 0.0027, 0.5, jnp.zeros(3), v, 1.0))
     np.testing.assert_allclose(no_spin, quad + lin + np.array([0.0, 0.0, -9.81]), rtol=1e-14)
+
+
+def test_first_least_stays_in_range_with_nan():
+    assert 0 <= int(first_least(jnp.array([3.0, jnp.nan, 1.0, 2.0]))) < 4
