@@ -717,11 +717,13 @@ def test_argument_checks_run_inside_jit(stairs, air):
     golf = scene.ball("golf")
 
     @jax.jit
-    def final(t_end, ts, position, e):
-        p = estim.Params(e, 0.98, golf.radius, position, jnp.array([1.15, 0.0, 0.0]), mass=golf.mass)
+    def final(t_end, ts, position, e, lift_factor):
+        p = estim.Params(e, 0.98, golf.radius, position, jnp.array([1.15, 0.0, 0.0]), mass=golf.mass,
+                         lift_factor=lift_factor)
         return estim.simulate(scene, p, t_end, ts=ts, keep=("samples",)).final.position
 
-    good = dict(t_end=1.0, ts=jnp.array([0.0, 0.5, 1.0]), position=jnp.array([-0.2, 0.0, 1.7]), e=0.7)
+    good = dict(t_end=1.0, ts=jnp.array([0.0, 0.5, 1.0]), position=jnp.array([-0.2, 0.0, 1.7]), e=0.7,
+                lift_factor=1.0)
     ref = estim.simulate(scene, estim.Params(0.7, 0.98, golf.radius, (-0.2, 0.0, 1.7), (1.15, 0.0, 0.0),
                                              mass=golf.mass), 1.0).final.position
     np.testing.assert_allclose(np.asarray(final(**good)), np.asarray(ref), rtol=0, atol=1e-12)
@@ -734,6 +736,9 @@ def test_argument_checks_run_inside_jit(stairs, air):
         (dict(position=jnp.array([2.0, 0.0, -0.02])), "a ball starts inside a solid"),  # the ground
         (dict(e=1.5), r"e must lie in \[0, 1\]"),
     ]
+    if air:  # (checks the native kernels of a scene without air do not run: what they do not read)
+        bad += [(dict(lift_factor=-1.0), "lift_factor must be >= 0"),  # a check after the solids'
+                (dict(e=1.5, lift_factor=-1.0), r"e must lie in \[0, 1\]")]  # the first failing check
     for change, words in bad:
         with pytest.raises(ValueError, match=words):
             jax.block_until_ready(final(**{**good, **change}))

@@ -314,16 +314,13 @@ def _input_code(scene: Scene, prm: Params, t_end, ts):
     passes = [ok(prm) for _, ok in PARAM_CHECKS] + [
         jnp.isfinite(t_end) & (t_end > 0),
         jnp.isfinite(ts) & (ts >= 0) & (ts <= t_end),
-        ~inside_box,
-        ~inside_plane,
+        ~jnp.concatenate([jnp.ravel(inside_box), jnp.ravel(inside_plane)]),
     ] + [ok(prm) for _, ok in UNREAD_BY_KERNELS_CHECKS]
     # Every entry of every check in one array, and one reduction (min) of the failing
     # entries' check numbers: a reduction per check costs each call of the program
     # (estim._fold).
-    check = np.arange(1, len(passes) + 1)
-    check[len(PARAM_CHECKS) + 3:] -= 1  # (the box and the plane test are one check)
     passes = [jnp.ravel(x) for x in passes]
-    number = np.concatenate([np.full(x.shape[0], c, np.int32) for x, c in zip(passes, check, strict=True)])
+    number = np.concatenate([np.full(x.shape[0], i + 1, np.int32) for i, x in enumerate(passes)])
     none = len(_INPUT_CHECKS) + 1
     first = jnp.min(jnp.where(jnp.concatenate(passes), none, number))
     return jnp.where(first == none, 0, first).astype(jnp.int32)
