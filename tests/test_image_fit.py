@@ -137,13 +137,18 @@ def test_a_fit_of_positions_refuses_camera_offsets():
         estim.fit(scene, {"pingpong": (t, pos)}, free=("e", "dt_camera2"))
 
 
-def test_the_replay_from_a_calibrated_camera_puts_the_ball_where_the_camera_sees_it():
-    # MuJoCo renders the fitted ball through a camera built from the calibrated one (pose,
-    # field of view, the principal point's offset as a shift of the picture); the ball's
-    # centre in the picture is the calibrated camera's projection of the fitted position.
+@pytest.mark.parametrize("fy, distortion", [(1400.0, ()), (1330.0, (-0.3, 0.1, 0.002, -0.001, 0.0))],
+                         ids=["pinhole", "distorted"])
+def test_the_replay_from_a_calibrated_camera_puts_the_ball_where_the_camera_sees_it(fy, distortion):
+    # MuJoCo renders the fitted ball through a pinhole from the calibrated camera's pose,
+    # resampled along each pixel's ray; the ball's centre in the picture is the calibrated
+    # camera's projection (OpenCV's forward formula, not the resampling's inverse) of the
+    # fitted position, with the principal point off the centre, and, in the second case,
+    # fx and fy 5% apart and a strong barrel distortion.
     path = "data/scenes/table_tennis.xml"
-    cam = Camera.from_opencv([[1400, 0, 1010], [0, 1400, 490], [0, 0, 1]], (), SIDE.rvec, SIDE.translation,
+    cam = Camera.from_opencv([[1400, 0, 1010], [0, fy, 490], [0, 0, 1]], distortion, SIDE.rvec, SIDE.translation,
                              size=(1920, 1080))
+    pinhole = Camera.from_opencv([[1400, 0, 1010], [0, fy, 490], [0, 0, 1]], (), SIDE.rvec, SIDE.translation)
     view = calibrated_view(cam)
     values = {"e": TRUTH["e"], "mu": TRUTH["mu"], **dict(zip(("x0", "y0", "z0"), TRUTH["position"], strict=True)),
               **dict(zip(("vx0", "vy0", "vz0"), TRUTH["velocity"], strict=True))}
@@ -153,26 +158,33 @@ def test_the_replay_from_a_calibrated_camera_puts_the_ball_where_the_camera_sees
     width, scale = 960, 960 / 1920
     frames = render_frames(calibrated_model(path, view), motion, width=width, height=540, camera=view,
                            caption=False, ghosts=False)
+    moved = []
     for k, img in enumerate(frames):
         if k % 3:
             continue
+        assert img.shape == (540, 960, 3)
         img = img.astype(float)
         orange = (img[..., 0] > 150) & (img[..., 0] > img[..., 2] + 80) & (img[..., 1] > 60)
         rows, cols = np.nonzero(orange)
         seen = np.array([cols.mean(), rows.mean()])
         # OpenCV's pixel centres at a scale of one half: u' = (u + 0.5) s - 0.5.
-        want = (np.asarray(cam.project(motion.fitted["pingpong"][k])) + 0.5) * scale - 0.5
-        radius = 1400 * scale * 0.02 / float(cam.depth(motion.fitted["pingpong"][k]))
+        p = motion.fitted["pingpong"][k]
+        want = (np.asarray(cam.project(p)) + 0.5) * scale - 0.5
+        radius = 1400 * scale * 0.02 / float(cam.depth(p))
         assert np.linalg.norm(seen - want) < 0.5 * radius + 1.0, (k, seen, want)
+        moved.append(np.linalg.norm(want - ((np.asarray(pinhole.project(p)) + 0.5) * scale - 0.5)))
+    # The distortion moves the ball by many times the tolerance near the picture's edges.
+    assert max(moved) > (25.0 if distortion else -1.0)
 
 
 def test_a_replay_refuses_a_camera_it_cannot_render():
-    with pytest.raises(ValueError, match="differ"):
-        calibrated_view(Camera.from_opencv([[1400, 0, 960], [0, 1200, 540], [0, 0, 1]], size=(1920, 1080)))
-    with pytest.raises(ValueError, match="distortion"):
-        calibrated_view(Camera.from_opencv(np.asarray(SIDE.matrix), (0.1, 0, 0, 0), size=(1920, 1080)))
     with pytest.raises(ValueError, match="image size"):
         calibrated_view(Camera.from_opencv(np.asarray(SIDE.matrix)))
+    # The principal point far off the image and a distortion that folds at 0.05 of the
+    # axis: the projection has no pixel of the image's in its range.
+    with pytest.raises(ValueError, match="ray of none of its pixels"):
+        calibrated_view(Camera.from_opencv([[1400, 0, -5000], [0, 1400, 540], [0, 0, 1]], (-50.0, 0, 0, 0, 0),
+                                           size=(1920, 1080)))
 
 
 def test_mujoco_as_the_camera():

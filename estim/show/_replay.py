@@ -44,7 +44,7 @@ import numpy as np  # noqa: E402
 from ..fitting import _registry as registry  # noqa: E402
 from ..forward._simulate import simulate  # noqa: E402
 from ..model._scene import Scene, load_scene, scene_from_model  # noqa: E402
-from ..tracks._camera import Camera  # noqa: E402
+from ..tracks._camera import Camera, project  # noqa: E402
 from ..tracks._csv import Tracks, read_tracks_csv  # noqa: E402
 from ._plots import COLOURS  # noqa: E402
 
@@ -410,18 +410,28 @@ def side_camera(model, motion: ReplayMotion | None, width: int, height: int, *,
 
 @dataclass(frozen=True)
 class CalibratedView:
-    """The viewpoint of a calibrated camera (``estim.tracks._camera.Camera``), as a camera
-    ``estim_view`` that :func:`calibrated_model` adds to the scene's MJCF: placed at the
-    camera's centre, its axes OpenCV's turned half a turn about x (MuJoCo's camera looks
-    along its -z with y up), its vertical field of view ``2 atan(h / (2 fy))``. MuJoCo
-    renders a centred principal point, square pixels and no distortion: the picture is
-    shifted by the principal point's offset from the image centre (``shift``, pixels of the
-    full image), and a camera whose fx and fy differ by more than 1% or whose distortion is
-    not zero is refused (its picture would not be the video's)."""
+    """The viewpoint of a calibrated camera (``estim.tracks._camera.Camera``).
+
+    MuJoCo renders a pinhole camera only: square pixels, the principal point at the image
+    centre, no lens distortion. A calibrated camera may have none of these, so the view
+    renders a wider pinhole picture from the camera's pose and resamples it into the
+    camera's own picture. The pinhole is the camera ``estim_view`` that
+    :func:`calibrated_model` adds to the scene's MJCF: placed at the camera's centre, its
+    axes OpenCV's turned half a turn about x (MuJoCo's camera looks along its -z with y up),
+    its vertical field of view ``fovy`` (degrees) and its width ``aspect`` times its height
+    wide enough for the ray of every pixel of the camera's image. Each pixel of the picture
+    then takes, by bilinear interpolation, the rendered colour along its own ray: its
+    undistorted normalised coordinates ``(x', y')`` (``Camera.normalised``, OpenCV's
+    ``undistortPoints``) land at ``f (x', y') + c`` in the pinhole picture of focal length
+    ``f`` and centre ``c``. That is exact for a pinhole (the camera's projection of a point
+    and the pinhole's are the same ray) up to the interpolation. A pixel where the
+    distortion model has no inverse (the fixed-point undistortion does not give a point that
+    projects back onto the pixel, beyond a strong distortion's fold) or whose ray lies
+    beyond :data:`WIDEST` of the axis is left black rather than drawn wrong."""
 
     camera: Camera
     fovy: float
-    shift: tuple[float, float]
+    aspect: float
 
     def to_mjv(self) -> mujoco.MjvCamera:
         cam = mujoco.MjvCamera()
@@ -429,28 +439,59 @@ class CalibratedView:
         cam.fixedcamid = -1  # set by render_frames from the model's camera "estim_view"
         return cam
 
+    def rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """The undistorted normalised coordinates ``(height, width, 2)`` of the pixel
+        centres of the camera's picture drawn ``width`` x ``height`` pixels (its image
+        scaled), and where they are valid ``(height, width)``: the projection of the
+        undistorted point is back within :data:`ROUND_TRIP` pixels of the image's pixel."""
+        w, h = self.camera.size
+        # The centre of pixel (i, j) of the picture, in pixels of the camera's image.
+        u = (np.arange(width) + 0.5) * (w / width) - 0.5
+        v = (np.arange(height) + 0.5) * (h / height) - 0.5
+        return _undistorted(self.camera, np.stack(np.meshgrid(u, v), axis=-1))
+
 
 VIEW_CAMERA = "estim_view"
+# The widest ray a calibrated view renders: tan of its angle from the optical axis, per
+# image axis (80 degrees). Beyond, a pinhole picture would need an unbounded size.
+WIDEST = math.tan(math.radians(80.0))
+# A pixel whose undistorted ray projects back further than this (pixels) is not drawn.
+ROUND_TRIP = 0.01
+
+
+def _undistorted(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``camera.normalised(uv)`` and where it inverts the projection (``ROUND_TRIP``)."""
+    xy = camera.normalised(uv)
+    pinhole = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+    back = np.asarray(project(camera.matrix, camera.distortion, np.eye(3), np.zeros(3), pinhole))
+    ok = np.all(np.isfinite(xy), axis=-1) & (np.linalg.norm(back - uv, axis=-1) <= ROUND_TRIP)
+    return xy, ok & np.all(np.abs(xy) <= WIDEST, axis=-1)
 
 
 def calibrated_view(camera: Camera) -> CalibratedView:
-    """The :class:`CalibratedView` of a camera with a known image size.
+    """The :class:`CalibratedView` of a camera with a known image size: the pinhole's field
+    of view from the undistorted rays through the image's border and a grid inside it.
 
     Raises:
-        ValueError: no image size, fx and fy more than 1% apart, or distortion."""
+        ValueError: no image size, or no pixel whose ray the distortion model gives."""
     if camera.size is None:
         raise ValueError(f"camera {camera.name!r}: a replay from its viewpoint needs its image size "
                          "(image_width, image_height or w, h in its file)")
-    K = np.asarray(camera.matrix)
-    if abs(K[0, 0] - K[1, 1]) > 0.01 * K[1, 1]:
-        raise ValueError(f"camera {camera.name!r}: fx = {K[0, 0]:g} and fy = {K[1, 1]:g} differ; MuJoCo renders "
-                         "square pixels only")
-    if np.any(np.asarray(camera.distortion) != 0):
-        raise ValueError(f"camera {camera.name!r}: MuJoCo renders no lens distortion; a replay from a distorted "
-                         "camera's viewpoint would not be its picture")
     w, h = camera.size
-    fovy = math.degrees(2.0 * math.atan(h / (2.0 * K[1, 1])))
-    return CalibratedView(camera, fovy, (float(K[0, 2] - (w - 1) / 2), float(K[1, 2] - (h - 1) / 2)))
+    # Every pixel of the border (where a radial distortion reaches furthest) and a grid.
+    edge_u, edge_v = np.arange(-0.5, w, 1.0), np.arange(-0.5, h, 1.0)
+    grid = np.stack(np.meshgrid(np.linspace(-0.5, w - 0.5, 33), np.linspace(-0.5, h - 0.5, 33)), -1)
+    uv = np.concatenate([np.stack([edge_u, np.full_like(edge_u, -0.5)], -1),
+                         np.stack([edge_u, np.full_like(edge_u, h - 0.5)], -1),
+                         np.stack([np.full_like(edge_v, -0.5), edge_v], -1),
+                         np.stack([np.full_like(edge_v, w - 0.5), edge_v], -1), grid.reshape(-1, 2)])
+    xy, ok = _undistorted(camera, uv)
+    if not np.any(ok):
+        raise ValueError(f"camera {camera.name!r}: its distortion model gives the ray of none of its pixels")
+    # A pixel's margin on every side, for the bilinear interpolation at the border.
+    tx, ty = (float(np.max(np.abs(xy[ok, i]))) * 1.01 for i in range(2))
+    tx, ty = max(tx, 1e-3), max(ty, 1e-3)
+    return CalibratedView(camera, math.degrees(2.0 * math.atan(ty)), tx / ty)
 
 
 def calibrated_model(scene_path, view: CalibratedView) -> mujoco.MjModel:
@@ -467,17 +508,39 @@ def calibrated_model(scene_path, view: CalibratedView) -> mujoco.MjModel:
     return spec.compile()
 
 
-def _shifted(img: np.ndarray, shift) -> np.ndarray:
-    """``img`` moved right by ``shift[0]`` and down by ``shift[1]`` pixels (rounded), the
-    uncovered border black: a principal point off the image centre."""
-    dx, dy = (int(round(v)) for v in shift)
-    if dx == 0 and dy == 0:
-        return img
-    out = np.zeros_like(img)
-    h, w = img.shape[:2]
-    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = img[max(-dy, 0):h - max(dy, 0),
-                                                                    max(-dx, 0):w - max(dx, 0)]
-    return out
+class _Resample:
+    """The pinhole picture that :class:`CalibratedView` renders (``size``: width, height)
+    and its bilinear resampling into the camera's picture of ``width`` x ``height``."""
+
+    def __init__(self, view: CalibratedView, width: int, height: int):
+        xy, ok = view.rays(width, height)
+        # As fine as the camera's picture at its centre: the picture's focal length in
+        # its own pixels, fy scaled, and no more than four times the picture's size.
+        focal = float(view.camera.matrix[1, 1]) * height / view.camera.size[1]
+        tan = math.tan(math.radians(view.fovy) / 2)
+        rows = min(max(2, math.ceil(2 * focal * tan)), 4 * max(width, height))
+        cols = min(max(2, math.ceil(rows * view.aspect)), 4 * max(width, height))
+        self.size = (cols, rows)
+        # MuJoCo's pinhole: the vertical field of view spans the rows, square pixels, the
+        # principal point at the centre; OpenCV's pixel centres are integers.
+        f = rows / (2 * tan)
+        c = f * xy[..., 0] + (cols - 1) / 2
+        r = f * xy[..., 1] + (rows - 1) / 2
+        ok &= (c >= 0) & (c <= cols - 1) & (r >= 0) & (r <= rows - 1)
+        c, r = np.where(ok, c, 0.0), np.where(ok, r, 0.0)
+        c0 = np.minimum(np.floor(c).astype(np.intp), cols - 2)
+        r0 = np.minimum(np.floor(r).astype(np.intp), rows - 2)
+        fc, fr = (c - c0)[..., None], (r - r0)[..., None]
+        self.index = (r0, c0)
+        self.weights = [(1 - fr) * (1 - fc) * ok[..., None], (1 - fr) * fc * ok[..., None],
+                        fr * (1 - fc) * ok[..., None], fr * fc * ok[..., None]]
+
+    def __call__(self, img: np.ndarray) -> np.ndarray:
+        r0, c0 = self.index
+        img = img.astype(np.float32)
+        out = (self.weights[0] * img[r0, c0] + self.weights[1] * img[r0, c0 + 1]
+               + self.weights[2] * img[r0 + 1, c0] + self.weights[3] * img[r0 + 1, c0 + 1])
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 # --------------------------------------------------------------------------- rendering
@@ -588,12 +651,14 @@ def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int 
     chosen = ball_colours(model, motion.balls)
     chosen.update({b: _rgb(c) for b, c in (colours or {}).items() if b in chosen})
     colours = chosen
-    model, adr = _prepare(model, motion.balls, width, height, colours)
+    resample = _Resample(camera, width, height) if isinstance(camera, CalibratedView) else None
+    size = resample.size if resample is not None else (width, height)
+    model, adr = _prepare(model, motion.balls, *size, colours)
     camera = camera or side_camera(model, motion, width, height)
     model.vis.global_.fovy = camera.fovy  # a free camera's field of view is the model's
     data = mujoco.MjData(model)
     try:
-        renderer = mujoco.Renderer(model, height, width)
+        renderer = mujoco.Renderer(model, size[1], size[0])
     except Exception as err:
         raise RenderError(
             f"MuJoCo could not render offscreen (MUJOCO_GL={os.environ.get('MUJOCO_GL', '')!r}): "
@@ -601,13 +666,10 @@ def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int 
             "or use the matplotlib side view (estim.render_sideview, `estim replay --view side`)"
         ) from err
     cam = camera.to_mjv()
-    shift = (0.0, 0.0)
     if isinstance(camera, CalibratedView):
         cam.fixedcamid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, VIEW_CAMERA)
         if cam.fixedcamid < 0:
             raise ValueError(f"a calibrated view needs the model's camera {VIEW_CAMERA!r} (calibrated_model)")
-        scale = width / camera.camera.size[0]
-        shift = (camera.shift[0] * scale, camera.shift[1] * scale)
     band = _CaptionBand(motion, colours, width) if caption else None
     try:
         for k, t in enumerate(motion.t):
@@ -630,7 +692,8 @@ def render_frames(model, motion: ReplayMotion, *, width: int = 640, height: int 
                     m = motion.measured[b][k]
                     if np.all(np.isfinite(m)):
                         _add_sphere(scn, m, GHOST_SCALE * r, (*c, GHOST_ALPHA))
-            img = _shifted(renderer.render(), shift)
+            img = renderer.render()
+            img = resample(img) if resample is not None else img
             yield band.under(img, k) if band is not None else img.copy()
     finally:
         renderer.close()
