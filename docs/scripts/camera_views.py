@@ -3,7 +3,7 @@
 Run from the repository root: ``python docs/scripts/camera_views.py [--shots N] [--json F]``.
 Shots of estim's own 3-D physics (drag, Magnus, the friction law's bounce; spin drawn
 per shot), 25 fps, seen by one camera at a time (from the side, at an angle from a corner,
-far behind an end of the table), 2 px of Gaussian noise on every pixel. Each is fitted with
+far behind an end of the table), 2 px of Gaussian noise on every pixel (``--noise``). Each is fitted with
 ``estim.fit_image`` and its defaults (what ``estim fit TRACK.csv --camera CAM.yaml --scene
 data/scenes/table_tennis.xml`` runs), and compared with the truth: the mean 3-D distance of
 the fitted path from the true one at the frames, e, and the spin across the flight (the
@@ -65,7 +65,7 @@ def across(spin, velocity):
     return np.asarray(spin) - np.dot(spin, v) * v
 
 
-def run(shots: int, seed: int = 0, views=tuple(VIEWS)) -> list[dict]:
+def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX) -> list[dict]:
     scene = estim.load_scene(SCENE)
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, 0.6, 1.0 / FPS)
@@ -74,7 +74,8 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS)) -> list[dict]:
         truth, path = draw_shot(rng, scene, t)
         for name in views:
             cam = VIEWS[name]
-            uv = np.asarray(cam.project(path)) + rng.normal(0.0, NOISE_PX, (t.size, 2))
+            # The same draws at every noise level: the shots' noise differs only in its size.
+            uv = np.asarray(cam.project(path)) + noise * rng.normal(0.0, 1.0, (t.size, 2))
             tracks = ImageTracks(f"shot {k}", ("pingpong",), (cam,), {"pingpong": t}, {"pingpong": uv},
                                  {"pingpong": np.zeros(t.size, np.int64)})
             start = time.perf_counter()
@@ -122,9 +123,10 @@ def main() -> None:
     parser.add_argument("--shots", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--views", nargs="+", default=list(VIEWS), choices=list(VIEWS))
+    parser.add_argument("--noise", type=float, default=NOISE_PX, help="pixels' noise (px; 0: exact pixels)")
     parser.add_argument("--json", default=None, help="write every row to this file")
     args = parser.parse_args()
-    rows = run(args.shots, args.seed, tuple(args.views))
+    rows = run(args.shots, args.seed, tuple(args.views), args.noise)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)

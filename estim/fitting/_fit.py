@@ -487,13 +487,15 @@ class _Units:
 
 
 def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, progress, balls, anchors=None,
-             devices=None, images=None, explore=False, prior=None, effects=False):
+             devices=None, images=None, explore=False, prior=None, effects=False, graduated=()):
     """:func:`fit`, and what it worked on (``_Units``); the keys split over ``devices``
     (``estim.fitting._sharding``; default: one device). A key of ``images``
     (:class:`ImageRows`) is fitted to its pixels; its ``data`` is then a 3-D start (the
     path the starts are read from, ``estim.tracks._reconstruct``). With ``explore`` every
     key runs every restart, at its noise floor or not (where the floor itself is uncertain:
-    a few frames of pixels)."""
+    a few frames of pixels). ``graduated`` (scales in the data's unit, decreasing): after the
+    restarts, the starts run once more through a robust scale of no less than each of
+    these in turn, then the noise's, and are kept where they end lower."""
     require_x64()
     if loss not in ROBUST_LOSSES:
         raise ValueError(f"unknown loss {loss!r}; choose one of {ROBUST_LOSSES}")
@@ -526,6 +528,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     if "t0" not in free:
         _check_release_time(data, fixed)
     starts, problems, inits = [], [], []
+    noises = []  # read from the data, before any rescaling
     n_max = max(len(images[b].t) if b in images else len(np.asarray(data[b][0])) for b in names)
     for b in names:
         spec = scene.ball(ball_of[b])
@@ -552,6 +555,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         else:
             obs, mask, view, cameras, noise = pos, np.isfinite(pos), None, None, init.noise
         pad = n_max - len(t)
+        noises.append(float(noise) if np.isfinite(noise) and noise > 0 else (1.0 if b in images else 2e-3))
         problems.append(_Problem(
             t=np.concatenate([t, np.full(pad, t[-1])]),
             obs=np.concatenate([np.nan_to_num(obs), np.zeros((pad, 3))]),
@@ -560,7 +564,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
             mass=np.float64(spec.mass),
             inertia=np.float64(spec.inertia),
             fixed=phi,
-            scale=np.float64(noise if np.isfinite(noise) and noise > 0 else (1.0 if b in images else 2e-3)),
+            scale=np.float64(noises[-1]),
             anchor=np.asarray((anchors or {}).get(b, (0.0, 0.0, 0.0)), dtype=np.float64),
             size=np.int64(len(t)),
             view=None if view is None else np.concatenate([view, np.zeros(pad, np.int64)]),
@@ -571,7 +575,6 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
             f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
     batch = jax.tree.map(lambda *xs: np.stack(xs), *problems)
-    noises = [float(p.scale) for p in problems]  # read from the data, before any rescaling
     mesh = None if devices is None else mesh_of(devices)
 
     def run(theta, problems):
@@ -641,6 +644,28 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         for k, i in enumerate(at):
             if (_objective(tried[2], k, loss, problems[i], tried[0][k], free)
                     < _objective(best_diag, i, loss, problems[i], best_theta[i], free)):
+                _adopt_row((best_theta, best_hist, best_diag), tried, i, k)
+        floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
+    # A graduated scale (Blake and Zisserman 1987's graduated non-convexity), from the
+    # starts once more: at a wide scale the robust loss is nearly quadratic over a start's
+    # misses and leads towards the path that explains every sample; at a scale far below
+    # those misses, a path that explains a subset of the samples and calls the rest
+    # outliers is a local minimum of its own. Kept where it ends lower at the noise. (Every
+    # key runs it: a fit at its floor without outliers may still be the higher of two
+    # minima, as one camera's paths along its rays can be.)
+    rows = [i for i in range(len(names)) if graduated and noises[i] < graduated[0]]
+    if rows:
+        say(f"graduated scale from {graduated[0]:g}: {[names[i] for i in rows]}")
+        trial = np.stack(starts)
+        for wide in [w for w in graduated if any(noises[i] < w for i in rows)] + [0.0]:
+            _, scaled = _with_scales(problems, batch, [max(float(pr.scale), wide) for pr in problems])
+            tried, at = run_rows(trial, scaled, rows)
+            trial = trial.copy()
+            for k, i in enumerate(at):
+                trial[i] = tried[0][k]
+        for k, i in enumerate(at):
+            if i in rows and (_objective(tried[2], k, loss, problems[i], tried[0][k], free)
+                              < _objective(best_diag, i, loss, problems[i], best_theta[i], free)):
                 _adopt_row((best_theta, best_hist, best_diag), tried, i, k)
         floors = [_at_floor(best_diag, i, noises[i]) for i in range(len(names))]
     # The robust scale once more, from the best fit's residuals. The early fit may have

@@ -73,6 +73,10 @@ NARROW = 4.0
 # (m/s): friction changes it by at most mu (1 + e) |v_n|, about 1 m/s for a table-tennis
 # ball at 4 m/s onto the table (mu 0.25, e 0.9).
 BOUNCE_PRIOR = 1.0
+# The least noise (px) a start assumes of the pixels (the priors weigh against it): a clean
+# track (a third-difference noise of 0.02-0.2 px) otherwise gave starts off by metres in
+# depth (docs/pages/cameras.md, "Clean tracks").
+START_NOISE = 1.0
 
 
 @dataclass(frozen=True)
@@ -306,7 +310,10 @@ class _Rays:
             self.dirs[view == k] = cam.rays(uv[view == k])
         # The rays' noise as an angle (rad): the pixels' noise over the focal length.
         focal = np.median([float(np.asarray(c.matrix)[0, 0]) for c in tracks.cameras])
-        self.noise = tracks.noise(ball) / focal
+        # No less than START_NOISE: below it the third differences read the projection's own
+        # curvature, not noise, and the priors below would vanish against rays whose depth
+        # no path can honour.
+        self.noise = max(tracks.noise(ball), START_NOISE) / focal
 
     def refs(self, bounces):
         """Each flight's reference time: the first sample, then the bounces."""
