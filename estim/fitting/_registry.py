@@ -43,7 +43,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -394,11 +394,32 @@ def unpack(phi) -> dict[str, Any]:
     return {n: phi[i] for i, n in enumerate(NAMES)}
 
 
+class _Bound(NamedTuple):
+    """A transform's methods, bound once (:func:`_transform`)."""
+
+    physical: Callable
+    unconstrained: Callable
+    slope: Callable
+
+
+def _transform(name: str) -> _Bound:
+    """The methods of the transform of the component ``name``. Bound once: an equinox
+    Module builds a bound method (itself a Module) at every attribute access, which the
+    fits' bookkeeping did thousands of times per fit of many clips."""
+    if name not in _BOUND:
+        component(name)  # raises, naming the known parameters
+    return _BOUND[name]
+
+
+_BOUND = {n: _Bound(_ENTRY[n].transform.physical, _ENTRY[n].transform.unconstrained, _ENTRY[n].transform.slope)
+          for n in NAMES}
+
+
 def to_physical(theta, free: tuple[str, ...], fixed):
     """phi: ``fixed`` (every component) with the fitted components ``free`` at
     ``T(theta)``; NumPy in, NumPy out (a copy), JAX in, JAX out."""
     xp = array_namespace(theta)
-    values = [component(n).transform.physical(theta[i], xp) for i, n in enumerate(free)]
+    values = [_transform(n).physical(theta[i], xp) for i, n in enumerate(free)]
     if xp is np:
         out = np.array(fixed, dtype=np.float64)
         out[index(free)] = values
@@ -409,12 +430,12 @@ def to_physical(theta, free: tuple[str, ...], fixed):
 def to_theta(phi, free: tuple[str, ...]):
     """theta: the unconstrained coordinates of the components ``free`` of phi."""
     xp = array_namespace(phi)
-    return xp.stack([component(n).transform.unconstrained(value(phi, n), xp) for n in free])
+    return xp.stack([_transform(n).unconstrained(value(phi, n), xp) for n in free])
 
 
 def slopes(phi, free: tuple[str, ...]) -> np.ndarray:
     """``d phi_k / d theta_k`` for the components ``free`` at phi (NumPy)."""
-    return np.array([component(n).transform.slope(value(phi, n)) for n in free], dtype=np.float64)
+    return np.array([_transform(n).slope(value(phi, n)) for n in free], dtype=np.float64)
 
 
 def priors(scene: Scene, given: Mapping[str, Any] | None = None) -> dict[str, tuple[float, float]]:

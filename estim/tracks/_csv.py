@@ -18,6 +18,7 @@ Pixel tracks of a video tracker are read by ``estim.tracks._pixels``; the flight
 from __future__ import annotations
 
 import csv
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -334,6 +335,20 @@ _UNIT_MISTAKES = (
 UNIT_TOLERANCE = 3.0
 
 
+@functools.lru_cache(maxsize=1024)
+def _fall_acceleration(t: bytes, z: bytes) -> float | None:
+    """The median acceleration of the flights of ``z(t)`` (float64 bytes) that end at a
+    bounce, None without any. Cached: a track read from a file is checked there and again
+    by the fit."""
+    bounces, flights = fit_flights(np.frombuffer(t), -np.frombuffer(z))
+    # Flights that end at a bounce (not the open end of the track, where the ball may rest)
+    # and whose curvature is known to 5%: a segment with an unresolved bounce inside is a
+    # poor parabola (10-20% errors, too flat) and is left out.
+    acc = [2.0 * f.curvature for f in flights
+           if f.stop in bounces and f.curvature > 0 and f.curvature_stderr < 0.05 * f.curvature]
+    return float(np.median(acc)) if acc else None
+
+
 def check_units(t, z, g: float, *, where: str = "track") -> float | None:
     """Check that a height track ``z(t)`` falls with gravity ``g`` between its bounces.
 
@@ -352,15 +367,9 @@ def check_units(t, z, g: float, *, where: str = "track") -> float | None:
     t, z = t[ok], z[ok]
     if t.size < 16:
         return None
-    bounces, flights = fit_flights(t, -z)
-    # Flights that end at a bounce (not the open end of the track, where the ball may rest)
-    # and whose curvature is known to 5%: a segment with an unresolved bounce inside is a
-    # poor parabola (10-20% errors, too flat) and is left out.
-    acc = [2.0 * f.curvature for f in flights
-           if f.stop in bounces and f.curvature > 0 and f.curvature_stderr < 0.05 * f.curvature]
-    if not acc:
+    a = _fall_acceleration(t.tobytes(), z.tobytes())
+    if a is None:
         return None
-    a = float(np.median(acc))
     ratio = a / g
     if 1.0 / UNIT_TOLERANCE <= ratio <= UNIT_TOLERANCE:
         return a

@@ -124,9 +124,13 @@ class Flight:
 
 
 def _line(t, y):
-    A = np.stack([np.ones_like(t), t], axis=1)
-    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-    return coef
+    """The least-squares line ``y = c0 + c1 t``, in closed form about the mean time (a
+    slope of 0 where every t is the same)."""
+    tm, ym = t.mean(), y.mean()
+    dt = t - tm
+    ss = dt @ dt
+    c1 = (dt @ (y - ym)) / ss if ss > 0 else 0.0
+    return np.array([ym - c1 * tm, c1])
 
 
 def split_flights(t, x, z, g, *, noise=None, min_points=4):
