@@ -24,8 +24,8 @@ is the model at ``t + dt_camerak``).
    friction coefficient loosely, and a wrong e trades with the depth of the whole path).
    Every key runs every restart (``_fit_all(explore=True)``: e from a grid over its
    range), at its noise floor or not: a few frames of pixels read that floor poorly. Then
-   every start runs once more through a graduated robust scale (``GRADUATED``: from 20 px
-   down to the pixels' noise), kept where it ends lower: at the noise of a clean track a
+   every start runs once more through a graduated robust scale (``GRADUATED``: at 20 px,
+   then at the pixels' noise), kept where it ends lower: at the noise of a clean track a
    start's misses of a few pixels had led to paths that explain part of the samples.
 3. **Depth.** Depth (along a camera's axis) is the direction the pixels fix worst. From the
    fit's covariance, each ball's report gives the standard error of the release point
@@ -65,11 +65,12 @@ SPIN_START = 400.0
 # there: at 40 two shots of 16 ran off along the rays to a path 40-90 cm away that fits
 # 15 frames as well (the depth one camera leaves open).
 RESTARTS = 2
-# The robust scales (px) of the graduated run from the starts (``_fit._fit_all``): from 20 px,
-# about what a start read off one camera's rays misses by, down by 5 at each step to the
-# pixels' noise. Without it a track cleaner than a pixel settled on paths that explain
-# part of the samples (docs/pages/cameras.md, "Clean tracks").
-GRADUATED = tuple(20.0 / 5.0**k for k in range(6))
+# The robust scales (px) of the graduated run from the starts (``_fit._fit_all``), before
+# the pixels' noise: 20 px, about what a start read off one camera's rays misses by.
+# Without it a track cleaner than a pixel settled on paths that explain part of the
+# samples (docs/pages/cameras.md, "Clean tracks"); steps at 4, 0.8, ... px between left
+# that study's tables (48 clean fits) the same to their last digit, and each costs a run.
+GRADUATED = (20.0,)
 # Starts per ball: the start paths with the bounces on different surfaces
 # (estim.tracks._reconstruct.reconstructions), fitted side by side; the best is kept.
 STARTS = 2
