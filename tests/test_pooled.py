@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import socket
 import subprocess
 import sys
 import textwrap
@@ -117,35 +118,63 @@ def test_a_clip_that_disagrees_is_named():
 SHARDED = textwrap.dedent("""
     import json, sys
     import jax
-    sys.path.insert(0, {tests!r})
-    import estim
-    from test_pooled import drops
-    from estim.fitting._pooled import fit_clips
+    from estim.fitting._job import fit_files
     assert len(jax.devices()) == 4, jax.devices()
-    scene = estim.load_scene({drop!r})
-    clips, _ = drops(scene, 0.8, 6, 4)  # 6 clips: padded to 8 on 4 devices
-    one = fit_clips(scene, clips, shared=("e",), devices=jax.devices()[:1], restarts=0)
-    four = fit_clips(scene, clips, shared=("e",), restarts=0)
+    paths = {paths!r}
+    one, _ = fit_files(paths, {drop!r}, shared=("e",), devices=jax.devices()[:1])
+    four, _ = fit_files(paths, {drop!r}, shared=("e",))
     print(json.dumps([one.to_json(), four.to_json()]))
 """)
 
 
-def test_sharded_over_four_devices_matches_one():
-    """The clip axis split over 4 CPU devices gives the unsharded fit to 1e-10 (the shared e,
-    its standard error, each clip's release state; mu_t to 1e-8)."""
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
-    code = SHARDED.format(tests=str(ROOT / "tests"), drop=DROP)
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
-    assert out.returncode == 0, out.stderr[-3000:]
-    one, four = json.loads(out.stdout.strip().splitlines()[-1])
-    assert abs(one["shared"]["e"] - four["shared"]["e"]) < 1e-10
-    assert abs(one["shared"]["stderr"]["e"] - four["shared"]["stderr"]["e"]) < 1e-10
-    # mu_t, which a drop's few bounces hardly determine, to 1e-8: the one- and four-device
-    # programs round differently, and the fit amplifies it there (2.1e-9 apart in mu_t of
-    # clip c2, session 16, on either contact geometry; 1e-7 of its standard error).
-    for label, clip in one["clips"].items():
-        for name in ("x0", "z0", "vx0", "mu_t"):
-            assert abs(clip[name] - four["clips"][label][name]) < (1e-8 if name == "mu_t" else 1e-10), (label, name)
+def test_sharded_and_distributed_match_one_device(tmp_path):
+    """The clip axis split over 4 CPU devices of one process, and over 2 x 2 devices of two
+    processes (``estim fit ... --shared e --distributed``: two "hosts" joined by
+    ``jax.distributed``, whose sums JAX reduces across the processes with its CPU
+    collectives, Gloo), gives what one device gives, to 1e-10: the shared e, its standard
+    error, each clip's release state (mu_t to 1e-8). 6 clips: padded to 8 on 4 devices.
+    Of the two processes only process 0 prints the result (its standard output holds the
+    JSON alone: Gloo's messages go to standard error) and writes ``--out``."""
+    scene = estim.load_scene(DROP)
+    clips, _ = drops(scene, 0.8, 6, 4)
+    paths = []
+    for c in clips:
+        paths.append(str(tmp_path / f"{c.label}.csv"))
+        _write_csv(paths[-1], c)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    # Files, not pipes: a process blocked on a full pipe would hold the others at JAX's
+    # shutdown barrier.
+    logs = [(tmp_path / f"stdout{k}", tmp_path / f"stderr{k}") for k in range(3)]
+    commands = [[sys.executable, "-c", SHARDED.format(paths=paths, drop=DROP)]]
+    commands += [[sys.executable, "-m", "estim", "fit", *paths, "--scene", DROP, "--shared", "e", "--json",
+                  "--distributed", "--out", str(tmp_path / f"out{k}")] for k in range(2)]
+    runs = []
+    for k, (command, (out, err)) in enumerate(zip(commands, logs, strict=True)):
+        extra = {"XLA_FLAGS": f"--xla_force_host_platform_device_count={4 if k == 0 else 2}"}
+        if k:
+            extra.update(JAX_NUM_PROCESSES="2", JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_PROCESS_ID=str(k - 1))
+        with open(out, "w") as o, open(err, "w") as e:
+            runs.append(subprocess.Popen(command, env=dict(env, **extra), stdout=o, stderr=e, text=True))
+    for r, (_, err) in zip(runs, logs, strict=True):
+        assert r.wait(timeout=900) == 0, err.read_text()[-3000:]
+    one, four = json.loads(logs[0][0].read_text().strip().splitlines()[-1])
+    two = json.loads(logs[1][0].read_text())
+    assert logs[2][0].read_text() == "", "only process 0 reports"
+    assert "split over 4 devices" in logs[1][1].read_text()
+    assert (tmp_path / "out0" / "fit.json").is_file() and not (tmp_path / "out1").exists()
+    for other in (four, two):
+        assert abs(one["shared"]["e"] - other["shared"]["e"]) < 1e-10
+        assert abs(one["shared"]["stderr"]["e"] - other["shared"]["stderr"]["e"]) < 1e-10
+        # mu_t, which a drop's few bounces hardly determine, to 1e-8: the one- and
+        # four-device programs round differently, and the fit amplifies it there (2.1e-9
+        # apart in mu_t of clip c2, session 16, on either contact geometry; 1e-7 of its
+        # standard error).
+        for label, clip in one["clips"].items():
+            for name in ("x0", "z0", "vx0", "mu_t"):
+                assert abs(clip[name] - other["clips"][label][name]) < (1e-8 if name == "mu_t" else 1e-10), (label, name)
 
 
 def _write_csv(path, clip):

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -706,22 +707,39 @@ def _distributed_settings() -> dict:
     return out
 
 
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """Standard output, at the file descriptor, sent to standard error: the library that
+    joins JAX's processes (Gloo) prints its connections to the C++ standard output, and the
+    result (``--json``) must be all that standard output holds."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def _cmd_fit_clips(args, scene, say) -> int:
     """``estim fit A B ... --shared NAMES``: the clips fitted together."""
-    if args.distributed:
-        jax.distributed.initialize(**_distributed_settings())
     devices = jax.devices()
     if args.devices is not None:
         if args.devices > len(devices):
             raise UsageError(f"--devices {args.devices}: JAX sees only {len(devices)} device(s)")
         devices = devices[: args.devices]
-    result, data = fit_files(
-        args.tracks, scene, shared=tuple(args.shared), pixels=args.pixels, ball=args.ball,
-        frame_interval=args.frame_interval, metres_per_pixel=args.metres_per_pixel,
-        from_bounce=args.from_bounce, say=say, loss=args.loss, devices=devices,
-        **_also(args, PIXEL_FREE if args.pixels else scene, priors=False))
+    with _stdout_to_stderr() if jax.process_count() > 1 else contextlib.nullcontext():
+        result, data = fit_files(
+            args.tracks, scene, shared=tuple(args.shared), pixels=args.pixels, ball=args.ball,
+            frame_interval=args.frame_interval, metres_per_pixel=args.metres_per_pixel,
+            from_bounce=args.from_bounce, say=say, loss=args.loss, devices=devices,
+            **_also(args, PIXEL_FREE if args.pixels else scene, priors=False))
     payload = result.to_json()
-    if args.out and jax.process_index() == 0:
+    if jax.process_index() > 0:  # every process holds the result: process 0 reports it
+        return 0 if result.converged else 1
+    if args.out:
         from ..show._outputs import write_pooled_outputs  # lazy: matplotlib
 
         write_pooled_outputs(result, data, args.out)
@@ -781,6 +799,10 @@ def _cmd_fit_export(args, scene, say) -> int:
 
 
 def _cmd_fit(args) -> int:
+    if args.distributed and args.shared is not None:
+        # First: JAX refuses to join the processes once its backend is up, and loading
+        # the scene already makes arrays.
+        jax.distributed.initialize(**_distributed_settings())
     scene = load_scene(args.scene or default_scene_path())
     for path in args.tracks:
         if not os.path.isfile(path):

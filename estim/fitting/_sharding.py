@@ -70,6 +70,6 @@ def per_unit(fn, mesh: Mesh | None, *xs):
 
 def gather(tree):
     """Host (NumPy) copies of the arrays of ``tree``, from every process in a multi-host run."""
-    if jax.process_count() > 1:  # pragma: no cover - needs several hosts
+    if jax.process_count() > 1:  # several processes (tests/test_pooled.py runs two)
         return multihost_utils.process_allgather(tree, tiled=True)
     return jax.device_get(tree)
