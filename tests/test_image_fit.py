@@ -4,6 +4,7 @@ cameras, fitted back from their pixels; through the library and through `estim f
 
 import json
 import math
+from types import SimpleNamespace
 
 import cv2
 import mujoco
@@ -14,7 +15,7 @@ from test_image_tracks import BEHIND, SIDE, _tracks
 import estim
 from estim.app._cli import main
 from estim.fitting._fit import BallFit
-from estim.fitting._image import DEPTH_LIMIT, _depth_report, fit_image
+from estim.fitting._image import AMBIGUOUS, DEPTH_LIMIT, _alternative, _depth_report, fit_image
 from estim.show._replay import calibrated_model, calibrated_view, render_frames, replay_motion
 from estim.tracks._camera import Camera
 from estim.tracks._image import ImageTracks
@@ -152,6 +153,24 @@ def test_the_depth_report_projects_the_release_covariance_on_the_axis():
     assert not open_["fixed"] and "known only to 10.0 cm" in open_["note"]
     unknown = _depth_report(_report([0.001, float("nan"), 0.002]), cam)
     assert not unknown["fixed"] and "cannot be determined" in unknown["note"]
+
+
+def test_a_second_path_that_fits_as_well_is_reported():
+    """Another start's fit within ``AMBIGUOUS`` of the chosen one's loss, with a path more
+    than ``DEPTH_LIMIT`` away on average, is reported with its distance and a note; one
+    that fits worse, or lies near, is not."""
+    path = np.zeros((5, 3))
+    chosen = SimpleNamespace(model_position=path, values={"e": 0.88})
+
+    def rival(shift, e=0.8):
+        return SimpleNamespace(model_position=path + [0.0, shift, 0.0], values={"e": e})
+
+    alt = _alternative(chosen, 10.0, [(rival(0.3), 11.5)])
+    assert alt["distance_m"] == pytest.approx(0.3) and alt["loss_difference"] == pytest.approx(1.5)
+    assert alt["values"] == {"e": 0.8} and "30 cm" in alt["note"] and "e = 0.800" in alt["note"]
+    assert _alternative(chosen, 10.0, [(rival(0.3), 10.0 + AMBIGUOUS)]) is None
+    assert _alternative(chosen, 10.0, [(rival(0.5 * DEPTH_LIMIT), 10.5)]) is None
+    assert _alternative(chosen, 10.0, [(rival(0.2), 11.9), (rival(0.4), 10.1)])["distance_m"] == pytest.approx(0.4)
 
 
 def test_a_fit_of_positions_refuses_camera_offsets():

@@ -130,6 +130,7 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX) 
                 "spin_error": float(np.linalg.norm(across(spin, truth["velocity"]) - want) / np.linalg.norm(want)),
                 "rms_px": bf.rms_m, "converged": bf.converged, "at_noise_floor": bf.at_noise_floor,
                 "bounces": bf.n_bounces, "depth_m": bf.depth["along_axis_m"],
+                "second_path_m": (bf.depth["alternative"] or {}).get("distance_m"),
             })
             r = rows[-1]
             print(f"shot {k} {name:>6}: path {r['path_error_m'] * 100:5.1f} cm (bound {r['bound_m'] * 100:4.1f})  "
@@ -140,8 +141,9 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX) 
 
 def table(rows: list[dict]) -> str:
     out = ["| view | shots | mean 3-D error of the path (cm) | bound (cm) | worst (cm) | e error, median (max) | "
-           "e error, mean (signed) | spin across the flight, median error | rms (px) | no answer |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+           "e error, mean (signed) | spin across the flight, median error | rms (px) | second path reported | "
+           "no answer |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name in VIEWS:
         ok = [r for r in rows if r["view"] == name and "error" not in r]
         failed = sum(1 for r in rows if r["view"] == name and "error" in r)
@@ -152,7 +154,8 @@ def table(rows: list[dict]) -> str:
         out.append(f"| {name} | {len(ok) + failed} | {path.mean():.1f} | {np.mean([r['bound_m'] for r in ok]) * 100:.1f} | "
                    f"{path.max():.1f} | {np.median(e):.3f} ({e.max():.3f}) | {np.mean([r['e_signed'] for r in ok]):+.3f} | "
                    f"{np.median([r['spin_error'] for r in ok]):.0%} | "
-                   f"{np.median([r['rms_px'] for r in ok]):.2f} | {failed} |")
+                   f"{np.median([r['rms_px'] for r in ok]):.2f} | "
+                   f"{sum(r['second_path_m'] is not None for r in ok)} | {failed} |")
     return "\n".join(out)
 
 

@@ -14,9 +14,10 @@ is the model at ``t + dt_camerak``).
    the same least squares takes every camera's rays: a triangulation through the physics.
    The bounces go on the scene's surfaces, bounded ones (a table that holds the bounce
    point) before planes (``estim.tracks._reconstruct.reconstructions``); the ``STARTS``
-   best such paths are fitted side by side in one batch (the best repeated where there are
-   fewer, so that one compiled program serves every shot of a length), and the fit that
-   explains the pixels best (the least robust loss) is kept. The starting values come from
+   best such paths are fitted side by side in one batch, and the fit that explains the
+   pixels best (the least robust loss) is kept. Where the bounces fit one surface only, the
+   second start is the first moved ``FARTHER`` along the rays (depth is the direction one
+   camera fixes worst), so that one compiled program serves every shot of a length. The starting values come from
    the path's flights (:func:`start_values`: the release state, e and mu from the velocities
    at the first bounce, in air the spin from the first flight's curvature).
 2. **Fit.** Every fit's machinery (``estim.fitting._fit``) with the residuals in pixels
@@ -74,6 +75,18 @@ GRADUATED = (20.0,)
 # Starts per ball: the start paths with the bounces on different surfaces
 # (estim.tracks._reconstruct.reconstructions), fitted side by side; the best is kept.
 STARTS = 2
+# Where the bounces fit one surface only, the second start is the first moved this factor
+# farther along the first camera's rays (its pixels stay): depth is what one camera fixes
+# worst, and from behind, fits from the one start ran towards the camera until the ball
+# met the net and bounced back off it (two shots of 32 in the views study of
+# docs/pages/cameras.md, 72-79 cm off, their loss above the truth's); from 5% farther both
+# reached the truth's basin (2 and 10 cm off). 5% nearer missed one of them. A start so
+# moved whose release lies in a solid is not taken (the first is repeated).
+FARTHER = 1.05
+# Another start's fit whose robust loss exceeds the chosen one's by less than this, with a
+# path more than DEPTH_LIMIT away on average, is reported as a second solution: the pixels
+# tell the two apart by less than a likelihood ratio of e^2.
+AMBIGUOUS = 2.0
 
 
 def default_image_free(scene: Scene, n_cameras: int) -> tuple[str, ...]:
@@ -129,9 +142,13 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         except ValueError as err:
             raise ValueError(f"ball {b!r}: {err}") from None
         recs = [_inside_out(rec, scene, b, tracks) for rec in recs]
+        if len(recs) < STARTS:
+            farther = recs[0].scaled(FARTHER, tracks.cameras[0].centre)
+            if not _released_inside(farther, scene, b):
+                recs.append(farther)
         ok = tracks.valid(b)
         t, first = np.unique(tracks.t[b][ok], return_index=True)
-        # Always STARTS keys per ball (the best start repeated where there are fewer), so
+        # Always STARTS keys per ball (the last start repeated where there are fewer), so
         # that every shot of a given length runs the same compiled program.
         for j in range(STARTS):
             key = _key(b, j)
@@ -151,15 +168,19 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     every, units = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
                             max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True,
                             prior=prior, graduated=GRADUATED)
-    chosen = {b: _best(every, b) for b in tracks.balls}
+    losses = {k: _loss(bf) for k, bf in every.balls.items()}
+    chosen = {b: min((_key(b, j) for j in range(STARTS)), key=losses.__getitem__) for b in tracks.balls}
     result = FitResult({b: every.balls[k] for b, k in chosen.items()})
     for b, bf in result.balls.items():
         if effects:
             attach_effects(scene, bf, units.problems[units.names.index(chosen[b])])
         bf.ball = b
         bf.depth = _depth_report(bf, tracks.cameras[0])
-        if not bf.depth["fixed"]:
-            bf.notes.append(bf.depth["note"])
+        bf.depth["alternative"] = _alternative(bf, losses[chosen[b]], [
+            (every.balls[_key(b, j)], losses[_key(b, j)]) for j in range(STARTS) if _key(b, j) != chosen[b]])
+        for note in (bf.depth["note"], (bf.depth["alternative"] or {}).get("note", "")):
+            if note:
+                bf.notes.append(note)
     result.source = tracks.source
     return result
 
@@ -236,18 +257,41 @@ def _key(ball: str, j: int) -> str:
     return ball if j == 0 else f"{ball}#start{j + 1}"
 
 
-def _best(result: FitResult, ball: str) -> str:
-    """The key of ``ball``'s start whose fit explains its pixels best: the least robust
+def _released_inside(rec, scene: Scene, ball: str) -> bool:
+    """Whether a start path's release point (:func:`start_values`) lies within the ball's
+    radius of a solid, where a fit cannot start. (Near its bounces a start moved along the
+    rays may run through the surface: the fit's physics takes it off.)"""
+    values = start_values(rec, scene, ball)
+    point = np.array([[values["x0"], values["y0"], values["z0"]]])
+    in_box, in_plane = inside(np, scene, point, np.array([scene.ball(ball).radius]))
+    return bool(in_box.any() or in_plane.any())
+
+
+def _loss(bf) -> float:
+    """How well a start's fit explains its pixels, to choose between starts: the robust
     loss of its residuals at the pixels' noise level (the same scale for every start), and
     of its priors."""
+    u = np.concatenate([bf.residuals.ravel() / bf.noise_m, [(bf.values[n] - m) / sd for n, (m, sd) in bf.prior.items()]])
+    return float(np.sum(robust_loss(u, "cauchy"))) if np.all(np.isfinite(u)) else np.inf
 
-    def loss(key):
-        bf = result.balls[key]
-        u = np.concatenate([bf.residuals.ravel() / bf.noise_m,
-                            [(bf.values[n] - m) / sd for n, (m, sd) in bf.prior.items()]])
-        return float(np.sum(robust_loss(u, "cauchy"))) if np.all(np.isfinite(u)) else np.inf
 
-    return min((_key(ball, j) for j in range(STARTS)), key=loss)
+def _alternative(bf, loss: float, others) -> dict | None:
+    """The nearest rival of the chosen fit among the other starts' ``(fit, loss)``: one
+    whose loss is within ``AMBIGUOUS`` of ``loss`` and whose path lies more than
+    ``DEPTH_LIMIT`` from the chosen one on average (a second solution that the pixels
+    cannot rule out); ``None`` without one."""
+    rivals = []
+    for other, other_loss in others:
+        distance = float(np.mean(np.linalg.norm(other.model_position - bf.model_position, axis=1)))
+        if other_loss - loss < AMBIGUOUS and distance > DEPTH_LIMIT:
+            rivals.append((other_loss - loss, distance, other))
+    if not rivals:
+        return None
+    gap, distance, other = min(rivals, key=lambda r: r[0])
+    return {"distance_m": distance, "loss_difference": gap, "values": dict(other.values),
+            "note": f"a second path, {distance * 100:.0f} cm from this one on average (e = {other.values['e']:.3f}), "
+                    f"explains the pixels almost as well (robust loss {gap:+.2f}): one camera cannot tell them "
+                    "apart; add a camera, or more frames"}
 
 
 def _depth_report(bf, camera) -> dict:
