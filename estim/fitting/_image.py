@@ -14,12 +14,15 @@ is the model at ``t + dt_camerak``).
    the same least squares takes every camera's rays: a triangulation through the physics.
    The bounces go on the scene's surfaces, bounded ones (a table that holds the bounce
    point) before planes (``estim.tracks._reconstruct.reconstructions``); the ``STARTS``
-   best such paths are fitted side by side in one batch, and the fit that explains the
-   pixels best (the least robust loss) is kept. Where the bounces fit one surface only, the
+   best such paths are fitted side by side in one batch (always ``STARTS``, so that one
+   compiled program serves every shot of a length), and the fit that explains the pixels
+   best (the least robust loss) is kept. Where the bounces fit one surface only, the
    second start is the first moved ``FARTHER`` along the rays (depth is the direction one
-   camera fixes worst), so that one compiled program serves every shot of a length. The starting values come from
-   the path's flights (:func:`start_values`: the release state, e and mu from the velocities
-   at the first bounce, in air the spin from the first flight's curvature).
+   camera fixes worst); another start's fit nearly as good along a path far away is
+   reported as a second solution (``BallFit.depth["alternative"]``, ``AMBIGUOUS``). The
+   starting values come from the path's flights (:func:`start_values`: the release state,
+   e and mu from the velocities at the first bounce, in air the spin from the first
+   flight's curvature).
 2. **Fit.** Every fit's machinery (``estim.fitting._fit``) with the residuals in pixels
    and the scene's priors (``Scene.priors``: a few frames from one camera fix e and the
    friction coefficient loosely, and a wrong e trades with the depth of the whole path).
