@@ -137,10 +137,7 @@ def test_sharded_and_distributed_match_one_device(tmp_path):
     JSON alone: Gloo's messages go to standard error) and writes ``--out``."""
     scene = estim.load_scene(DROP)
     clips, _ = drops(scene, 0.8, 6, 4)
-    paths = []
-    for c in clips:
-        paths.append(str(tmp_path / f"{c.label}.csv"))
-        _write_csv(paths[-1], c)
+    paths = _clip_files(tmp_path, clips)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -177,6 +174,14 @@ def test_sharded_and_distributed_match_one_device(tmp_path):
                 assert abs(clip[name] - other["clips"][label][name]) < (1e-8 if name == "mu_t" else 1e-10), (label, name)
 
 
+def _clip_files(folder, clips) -> list[str]:
+    """Each clip written to ``folder/LABEL.csv``; the paths."""
+    paths = [str(folder / f"{c.label}.csv") for c in clips]
+    for path, c in zip(paths, clips, strict=True):
+        _write_csv(path, c)
+    return paths
+
+
 def _write_csv(path, clip):
     with open(path, "w") as f:
         f.write("t,ball,x,z\n")
@@ -199,10 +204,7 @@ def test_cli_fits_files_together(tmp_path, capsys):
     what a single fit gives, fit.json and the forest plot written."""
     scene = estim.load_scene(DROP)
     clips, _ = drops(scene, 0.8, 3, 5)
-    paths = []
-    for c in clips:
-        paths.append(str(tmp_path / f"{c.label}.csv"))
-        _write_csv(paths[-1], c)
+    paths = _clip_files(tmp_path, clips)
     out = tmp_path / "out"
     code = main(["fit", *paths, "--scene", DROP, "--shared", "e", "--json", "--out", str(out)])
     captured = capsys.readouterr()
