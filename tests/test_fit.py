@@ -257,7 +257,7 @@ def test_loss_gradient_matches_finite_differences(stairs):
     # a point away from the optimum (so that the gradient is not ~0), t0 < 0 so that no
     # sample sits on the release kink; every event time away from the samples
     values = {"e": truth[ball]["e"] + 0.01, "mu_t": truth[ball]["mu_t"] - 0.005, "mu": 0.25,  # (mu: the friction law's)
-              "e_slope": 0.0,
+              "e_slope": 0.0, "compression": 0.0,
               "vx0": truth[ball]["vx0"] + 0.02, "x0": spec.position[0] + 0.003,
               "z0": spec.position[2] - 0.002, "vz0": 0.05, "t0": -0.004, "y0": spec.position[1],
               "vy0": 0.0, "drag_coefficient": 0.47,  # drag and spin: no effect in a vacuum

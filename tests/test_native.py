@@ -44,7 +44,8 @@ def test_kernels_are_built_and_used():
 def balls_in(scene: estim.Scene, n: int, seed: int) -> estim.Params:
     """n balls released outside every solid: random radii, e and mu_t over [0, 1] with a
     share at the ends (e = 0 sticks, e = 1 never settles, mu_t = 1 slides off edges),
-    slow and fast throws in every direction, some dropped at rest, over the whole scene."""
+    slow and fast throws in every direction, some dropped at rest, over the whole scene;
+    a third with a compression (a contact radius from 0.5 r to 1.3 r)."""
     rng = np.random.default_rng(seed)
     lo = np.minimum(np.min(np.asarray(scene.box_centre - scene.box_half), axis=0), -1.0)
     hi = np.maximum(np.max(np.asarray(scene.box_centre + scene.box_half), axis=0), 1.0)
@@ -55,10 +56,12 @@ def balls_in(scene: estim.Scene, n: int, seed: int) -> estim.Params:
     vel = rng.normal(0.0, 2.0, (n, 3)) * rng.choice([0.0, 0.3, 1.0, 5.0], (n, 1))
     e = np.where(rng.random(n) < 0.15, rng.choice([0.0, 1.0], n), rng.uniform(0, 1, n))
     mu = np.where(rng.random(n) < 0.2, 1.0, rng.uniform(0, 1, n))
+    compression = np.where(rng.random(n) < 1 / 3, rng.uniform(-0.3, 0.5, n) * r, 0.0)
     depth = np.min(box_distance(pos, scene.box_centre, scene.box_half), axis=-1, initial=np.inf)
     height = np.min(pos @ np.asarray(scene.plane_normal).T - np.asarray(scene.plane_offset), axis=-1, initial=np.inf)
-    ok = (depth > r + 1e-6) & (height > r + 1e-6)
-    return estim.Params(e[ok], mu[ok], r[ok], pos[ok], vel[ok])
+    reach = r - compression + 1e-6
+    ok = (depth > reach) & (height > reach)
+    return estim.Params(e[ok], mu[ok], r[ok], pos[ok], vel[ok], compression=compression[ok])
 
 
 # The kernels run the seed's geometry (a box is its faces; exact edges run on the JAX
@@ -124,21 +127,23 @@ def test_trajectory_matches_the_jax_path(scene_balls, keep):
 def test_derivatives_match_the_jax_path(stairs):
     """Forward and reverse mode through the kernel (its tangent replays the structure in
     JAX) give the JAX path's derivatives: final state, event times and samples with
-    respect to e, mu_t, the release velocity and the sample times."""
+    respect to e, mu_t, the release velocity and the sample times (a third of the balls
+    compressed)."""
     params = balls_in(stairs, 40, seed=7)
     ts = jnp.linspace(0.0, 2.0, 9)
 
     def outputs(e, mu_t, velocity, ts):
-        p = estim.Params(e, mu_t, params.radius, params.position, velocity)
+        p = estim.Params(e, mu_t, params.radius, params.position, velocity, compression=params.compression)
         traj = estim.simulate(stairs, p, 2.0, ts=ts, throw=False)
         return traj.final.position, jnp.where(jnp.isfinite(traj.events.t), traj.events.t, 0.0), traj.position
 
     args = (params.e, params.mu_t, params.velocity, ts)
-    jac = jax.jacfwd(outputs, argnums=(0, 1, 2, 3))(*args)
-    grad = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=(0, 1, 2, 3))(*args)
+    argnums = tuple(range(len(args)))
+    jac = jax.jacfwd(outputs, argnums=argnums)(*args)
+    grad = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=argnums)(*args)
     with jax_path():
-        jac_ref = jax.jacfwd(outputs, argnums=(0, 1, 2, 3))(*args)
-        grad_ref = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=(0, 1, 2, 3))(*args)
+        jac_ref = jax.jacfwd(outputs, argnums=argnums)(*args)
+        grad_ref = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=argnums)(*args)
     for x, y in zip(jax.tree.leaves((jac, grad)), jax.tree.leaves((jac_ref, grad_ref)), strict=True):
         np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9)
 

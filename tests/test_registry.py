@@ -120,8 +120,10 @@ def test_params_fields_from_the_registry():
     """Each component lands in its field and vector component of Params (with the air's
     entries left at Params' defaults for a scene without air)."""
     values = {n: 0.01 * (i + 1) for i, n in enumerate(registry.NAMES)}
+    values["compression"] = 0.001  # (less than the radius)
     p = registry.to_params(values, radius=0.02, mass=0.0027)
     assert float(p.e) == values["e"] and float(p.mu_t) == values["mu_t"]
+    assert float(p.compression) == 0.001 and float(p.contact_radius) == 0.019
     np.testing.assert_array_equal(p.position, [values["x0"], values["y0"], values["z0"]])
     np.testing.assert_array_equal(p.velocity, [values["vx0"], values["vy0"], values["vz0"]])
     np.testing.assert_array_equal(p.spin, [values["spin_x"], values["spin_y"], values["spin_z"]])
@@ -146,12 +148,12 @@ def test_what_acts_follows_the_law_and_the_air():
     declared); the spin acts in air or under a law that couples it; a fit refuses what does
     not act, naming where it would; the default fit follows the law (an opt-in entry, the
     restitution's slope, only where asked)."""
-    assert estim.FrictionLaw().reads() == {"e", "mu", "radius", "inertia", "e_slope"}
+    assert estim.FrictionLaw().reads() == {"e", "mu", "radius", "inertia", "e_slope", "compression"}
     drop, table = estim.load_scene(DROP), estim.load_scene(TABLE)
     assert {"e", "mu_t"} <= registry.acting(drop) and not {"mu", "spin_x", "drag_coefficient"} & registry.acting(drop)
     assert {"e", "mu", "spin_x", "spin_z", "drag_coefficient", "lift_factor"} <= registry.acting(table)
     assert "mu_t" not in registry.acting(table) and "e_slope" in registry.acting(table)
-    assert "e_slope" not in registry.acting(drop)
+    assert "e_slope" not in registry.acting(drop) and "compression" in registry.acting(drop)
     vacuum_table = table.with_air(None)
     assert {"mu", "spin_y"} <= registry.acting(vacuum_table) and "drag_coefficient" not in registry.acting(vacuum_table)
     with pytest.raises(ValueError, match=r"mu_t acts only under a contact law that reads it"):

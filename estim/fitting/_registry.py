@@ -294,6 +294,9 @@ REGISTRY: tuple[Parameter, ...] = (
               acts=_read_by_law("e_slope"), acts_where=UNDER_LAW,
               doc="change of e per m/s of normal impact speed (negative: e falls as impacts get faster), "
                   "about the friction law's reference speed 2.446 m/s (the ITTF drop test's)"),
+    Parameter("compression", field="compression", default=0.0, unit="m", needs_bounce=True, opt_in=True,
+              doc="how much closer than its radius the ball's centre comes to a surface at a bounce (the "
+                  "contact radius is radius - compression; negative: a larger effective contact radius)"),
     Parameter("position", field="position", components=("x0", "y0", "z0"), unit="m",
               default=lambda ball: tuple(ball.position), start=lambda s: s.position, show="never",
               doc="release position of the ball's centre"),

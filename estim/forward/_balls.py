@@ -39,7 +39,7 @@ def flat_params(params: Params) -> Params:
         flatten(params.position, (3,)), flatten(params.velocity, (3,)), mass=mass,
         drag_coefficient=flatten(params.drag_coefficient, ()), spin=flatten(params.spin, (3,)),
         mu=flatten(params.mu, ()), inertia=flatten(params.inertia, ()), lift_factor=flatten(params.lift_factor, ()),
-        e_slope=flatten(params.e_slope, ()),
+        e_slope=flatten(params.e_slope, ()), compression=flatten(params.compression, ()),
     )
 
 
@@ -94,7 +94,7 @@ def ball_parts(scene: Scene, prm: Params, t_end, ts, pl: Plan, max_events: int, 
     final = State(t_end, segments.p1[last], segments.v1_post[last])
     solution = ClosedFormSolution(segments=segments, structure=pl.decisions, law=law, coefficients=c, gravity=g,
                                   rolls=has_edges(scene))
-    complete = pl.complete & stays_outside(scene, prm.radius, pl.decisions, pl.segments, pl.n_segments)
+    complete = pl.complete & stays_outside(scene, prm.contact_radius, pl.decisions, pl.segments, pl.n_segments)
     return trajectory_parts(pos, vel, events, final, complete, solution, keep)
 
 
@@ -151,12 +151,12 @@ def stays_outside(scene: Scene, radius, decisions, segments, n_segments):
 def check_outside(scene: Scene, params: Params, names=None) -> None:
     """A ball must not start inside a solid (checked here when the values are concrete;
     inside a user's jit by ``_input_code``). ``names``: the balls' names, for the message."""
-    leaves = (params.position, params.radius, scene.box_centre)
+    leaves = (params.position, params.radius, params.compression, scene.box_centre)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return
     batch = params.batch_shape
     p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
-    r = np.broadcast_to(np.asarray(params.radius), batch).reshape(-1)
+    r = np.broadcast_to(np.asarray(params.contact_radius), batch).reshape(-1)
     inside_box, inside_plane = inside(np, scene, p, r)
     bad = np.flatnonzero(inside_box.any(axis=1) | inside_plane.any(axis=1))
     if bad.size:
@@ -166,5 +166,6 @@ def check_outside(scene: Scene, params: Params, names=None) -> None:
         who = f"ball {i}" if names is None else f"ball {names[i]!r}"
         raise ValueError(
             f"{who} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
-            f"than its radius {r[i]} to the solid (release it outside every solid)"
+            f"than its contact radius {r[i]} (radius - compression) to the solid (release it outside "
+            "every solid)"
         )

@@ -36,11 +36,13 @@ import functools
 import math
 import os
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._config import keep_loop
+from ..model._params import Params
 from ..model._scene import Scene
 from . import _constants
 from ._balls import ball_parts, flat_params, map_balls, param_rows
@@ -153,6 +155,15 @@ def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
     return (join(numbers, jnp.float64), join(integers, jnp.int32)), counts
 
 
+def _as_kernels_read(params: Params) -> Params:
+    """The parameters as the kernels read them: the contact radius (``radius -
+    compression``) as the radius, because in what they run (:func:`supports`: no air, the
+    factor law) a ball's radius acts only through its contacts; NaN where the radius is
+    not > 0, so that the kernels' radius check fails where the JAX path's does."""
+    radius = jnp.where(params.radius > 0, params.contact_radius, jnp.nan)
+    return eqx.tree_at(lambda p: (p.radius, p.compression), params, (radius, jnp.zeros_like(params.compression)))
+
+
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """``estim.forward._solver.plan`` on the native kernel, for balls of any batch shape: the
     discrete structure of each ball's solution and its segments, as values (no
@@ -161,7 +172,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
     _check_supported(scene)
     _register()
-    scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
+    scene, params, t_end = jax.lax.stop_gradient((scene, _as_kernels_read(params), jnp.asarray(t_end, jnp.float64)))
     batch = params.batch_shape
     # One row of parameters per ball, packed as the JAX loop over balls packs them
     # (estim.forward._simulate.map_balls): where both run, as in a derivative, XLA gathers them once.
@@ -245,6 +256,7 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
 
     _check_supported(scene)
     _register()
+    params = _as_kernels_read(params)
     batch = params.batch_shape
     n = math.prod(batch)
     layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep)

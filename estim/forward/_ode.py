@@ -528,7 +528,7 @@ class Plan(eqx.Module):
 def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
     """Find the accepted steps and the events (values only)."""
     scene, params, t_end = jax.lax.stop_gradient((scene, params, t_end))
-    faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
+    faces, g, air = faces_for(scene, params.contact_radius), scene.gravity, scene.air
     law = law_of(scene)
     coef = law.coefficients(params)  # (the loop's carry is c)
     f = _vector_field(air, g, params)
@@ -733,7 +733,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
     first ``n_used`` steps, default all: ``estim.forward._scan``). Returns the state after
     the last step and the steps' nodes (a caller that uses only the state leaves the nodes
     to JAX's dead-code elimination: the scan then stores nothing per step)."""
-    faces, g, air = faces_for(scene, params.radius), scene.gravity, scene.air
+    faces, g, air = faces_for(scene, params.contact_radius), scene.gravity, scene.air
     law = law_of(scene)
     c = law.coefficients(params)
     f = _vector_field(air, g, params)
@@ -992,7 +992,7 @@ def finish(scene, params, t_end, ts, settings: OdeSettings, max_events: int, pl:
     (at least ``pl.n_steps``), then only the samples, events and dense solution that
     ``keep`` keeps."""
     final, nodes = replay(scene, params, t_end, pl.steps, settings, n_used)
-    normals = faces_for(scene, params.radius).row[:, NORMAL]
+    normals = faces_for(scene, params.contact_radius).row[:, NORMAL]
     law = law_of(scene)
     c = law.coefficients(params)
     pos = vel = events = None

@@ -126,12 +126,12 @@ def _sensitivities(make, scene, theta, t_end, max_segments, max_events, grazing_
         sc, prm, _, (t_s, p_s, v_s, acc, _) = solve(th)
         tau = jnp.where(crossing, t_fixed - t_s, 0.0)[:, None]
         x = p_s + v_s * tau + 0.5 * acc * tau**2
-        normal, offset = faces_for(sc, prm.radius).normal_offset(face)
+        normal, offset = faces_for(sc, prm.contact_radius).normal_offset(face)
         return jnp.sum(normal * x, axis=1) - offset
 
     numerator = jax.jacfwd(guard)(theta)
     sc, prm = unpack(theta)
-    normal = faces_for(sc, prm.radius).row[face][:, NORMAL]
+    normal = faces_for(sc, prm.contact_radius).row[face][:, NORMAL]
     closing = jnp.sum(normal * events.velocity_pre, axis=1)
     grazing = crossing & (jnp.abs(closing) < grazing_speed)
     floored = jnp.where(jnp.abs(closing) < grazing_speed, -grazing_speed, closing)

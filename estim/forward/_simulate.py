@@ -310,7 +310,7 @@ _INPUT_CHECKS = tuple(message for message, _ in PARAM_CHECKS) + (
 def _input_code(scene: Scene, prm: Params, t_end, ts):
     """0 if one ball's inputs pass every check of ``_INPUT_CHECKS``, else 1 + the index of
     the first that fails."""
-    inside_box, inside_plane = inside(jnp, scene, prm.position[None], prm.radius[None])
+    inside_box, inside_plane = inside(jnp, scene, prm.position[None], prm.contact_radius[None])
     passes = [ok(prm) for _, ok in PARAM_CHECKS] + [
         jnp.isfinite(t_end) & (t_end > 0),
         jnp.isfinite(ts) & (ts >= 0) & (ts <= t_end),

@@ -357,7 +357,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
     def body(carry):
         k, (t, p, v, kind, support, n), _, record, (params, t_end) = carry
-        faces = eqx.tree_at(lambda f: f.radius, table, params.radius)
+        faces = eqx.tree_at(lambda f: f.radius, table, params.contact_radius)
         c = law.coefficients(params)
         reason, face, tau = _decide_end(faces, g, law, c, t, p, v, kind, support, n, t_end)
         d = Decision(kind, support, n, reason, face)
@@ -389,7 +389,7 @@ def replay(scene: Scene, params, t_end, decisions: Decision, durations, n_used=N
     ``durations``: each segment's duration in the plan (values; the contact times on edges
     and corners are taken from them, not searched for again)."""
 
-    faces = faces_for(scene, params.radius)
+    faces = faces_for(scene, params.contact_radius)
     a = jnp.array([0.0, 0.0, -1.0]) * scene.gravity
     law = law_of(scene)
     c = law.coefficients(params)

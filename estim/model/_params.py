@@ -64,6 +64,13 @@ class Params(eqx.Module):
         e_slope: how the restitution of a law that reads it changes with the impact's normal
             speed (s/m; negative: e falls as impacts get faster), 0 (e the same at every
             speed) by default (``estim.forward.laws.FrictionLaw``).
+        compression: how much closer than its radius the ball's centre comes to a solid at
+            a contact (m), 0 (a rigid ball) by default: every contact, and the lever arm of
+            a law's friction, use the *contact radius* ``radius - compression``
+            (:attr:`contact_radius`); drag and lift keep ``radius``. Negative values are an
+            effective contact radius larger than the ball, which no real ball has but which
+            a tracker that reads the centre high, or a surface a little higher than the
+            scene says, look like.
 
     Impossible values (NaN, e outside [0, 1], r <= 0, ...) raise ``ValueError`` here when
     the values are concrete, and inside ``jit`` when :func:`estim.simulate` runs.
@@ -81,10 +88,11 @@ class Params(eqx.Module):
     inertia: Float[Array, "*batch"]
     lift_factor: Float[Array, "*batch"]
     e_slope: Float[Array, "*batch"]
+    compression: Float[Array, "*batch"]
 
     def __init__(self, e, mu_t, radius, position, velocity, *, mass=None,
                  drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0), mu=0.0, inertia=SOLID_INERTIA,
-                 lift_factor=1.0, e_slope=0.0):
+                 lift_factor=1.0, e_slope=0.0, compression=0.0):
         self.e = _float64("e", e)
         self.mu_t = _float64("mu_t", mu_t)
         self.radius = _float64("radius", radius)
@@ -97,6 +105,7 @@ class Params(eqx.Module):
         self.inertia = _float64("inertia", inertia)
         self.lift_factor = _float64("lift_factor", lift_factor)
         self.e_slope = _float64("e_slope", e_slope)
+        self.compression = _float64("compression", compression)
 
     def __check_init__(self):
         for name in ("position", "velocity", "spin"):
@@ -107,7 +116,7 @@ class Params(eqx.Module):
                   "position": self.position.shape[:-1], "velocity": self.velocity.shape[:-1],
                   "drag_coefficient": self.drag_coefficient.shape, "spin": self.spin.shape[:-1],
                   "mu": self.mu.shape, "inertia": self.inertia.shape, "lift_factor": self.lift_factor.shape,
-                  "e_slope": self.e_slope.shape}
+                  "e_slope": self.e_slope.shape, "compression": self.compression.shape}
         if self.mass is not None:
             fields["mass"] = self.mass.shape
         try:
@@ -128,6 +137,7 @@ class Params(eqx.Module):
             ("inertia", self.inertia, lambda x: (x > 0) & (x <= 1), "must lie in (0, 1] (I / (m r^2))"),
             ("lift_factor", self.lift_factor, lambda x: x >= 0, "must be >= 0"),
             ("e_slope", self.e_slope, lambda x: np.isfinite(x), "must be finite"),
+            ("compression", self.compression, lambda x: np.isfinite(x), "must be finite"),
         )
         if self.mass is not None:
             checks += (("mass", self.mass, lambda x: x > 0, "must be > 0 (kg)"),)
@@ -137,6 +147,13 @@ class Params(eqx.Module):
                 bad = ~(np.isfinite(xv) & ok(xv))
                 if np.any(bad):
                     raise ValueError(f"Params.{name} {what}; got {xv[bad].ravel()[:4].tolist()}")
+        if _concrete(self.radius) and _concrete(self.compression):
+            r, c = np.broadcast_arrays(np.asarray(self.radius), np.asarray(self.compression))
+            bad = ~(c < r)
+            if np.any(bad):
+                raise ValueError("Params.compression must be less than the radius (the contact radius, "
+                                 f"radius - compression, must be > 0); got compression {c[bad].ravel()[:4].tolist()} "
+                                 f"for radius {r[bad].ravel()[:4].tolist()}")
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -145,8 +162,13 @@ class Params(eqx.Module):
             self.position.shape[:-1], self.velocity.shape[:-1],
             () if self.mass is None else self.mass.shape,
             self.drag_coefficient.shape, self.spin.shape[:-1], self.mu.shape, self.inertia.shape,
-            self.lift_factor.shape, self.e_slope.shape,
+            self.lift_factor.shape, self.e_slope.shape, self.compression.shape,
         )
+
+    @property
+    def contact_radius(self) -> Float[Array, "*batch"]:
+        """``radius - compression``: how far from a solid the centre is at a contact."""
+        return self.radius - self.compression
 
     @classmethod
     def for_ball(
@@ -163,6 +185,7 @@ class Params(eqx.Module):
         mu=0.0,
         lift_factor=1.0,
         e_slope=0.0,
+        compression=0.0,
     ) -> Params:
         """Parameters of the scene's ball ``ball`` (radius, mass and inertia from the
         scene); the release position defaults to the ball's position in the scene file."""
@@ -173,7 +196,7 @@ class Params(eqx.Module):
             drag_coefficient = DRAG_COEFFICIENT
         return cls(e, mu_t, spec.radius, position, velocity, mass=spec.mass,
                    drag_coefficient=drag_coefficient, spin=spin, mu=mu, inertia=spec.inertia,
-                   lift_factor=lift_factor, e_slope=e_slope)
+                   lift_factor=lift_factor, e_slope=e_slope, compression=compression)
 
 
 # The checks of ``Params.__check_init__`` as they run inside ``jit``: a message and what
@@ -181,7 +204,8 @@ class Params(eqx.Module):
 PARAM_CHECKS = (
     ("e must lie in [0, 1]", lambda p: (p.e >= 0) & (p.e <= 1)),
     ("mu_t must lie in [0, 1]", lambda p: (p.mu_t >= 0) & (p.mu_t <= 1)),
-    ("radius must be > 0", lambda p: p.radius > 0),
+    ("radius must be > 0, and compression less than the radius",
+     lambda p: (p.radius > 0) & (p.contact_radius > 0)),
     ("position must be finite", lambda p: jnp.isfinite(p.position)),
     ("velocity must be finite", lambda p: jnp.isfinite(p.velocity)),
     ("mass must be > 0", lambda p: True if p.mass is None else p.mass > 0),

@@ -91,7 +91,14 @@ class FrictionLaw(AbstractContactLaw):
         return True
 
     def coefficients(self, params: Params) -> FrictionCoefficients:
-        return FrictionCoefficients(params.e, params.mu, params.radius, params.inertia, params.e_slope)
+        """The contact point is the contact radius ``rho = radius - compression`` from the
+        centre (``estim.Params.contact_radius``), so rho is the lever arm of the impulse,
+        and the law's inertia ratio is taken about it: ``I / (m rho^2) = alpha (r / rho)^2``
+        with ``I = alpha m r^2`` the ball's (every formula above holds with r -> rho, alpha ->
+        alpha (r / rho)^2; for a rigid ball, rho = r)."""
+        rho = params.contact_radius
+        ratio = params.radius / rho
+        return FrictionCoefficients(params.e, params.mu, rho, params.inertia * ratio * ratio, params.e_slope)
 
     def impact(self, v, w, n, c: FrictionCoefficients):
         """Equation (1): ``(v+, w+)``."""
