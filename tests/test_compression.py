@@ -18,6 +18,7 @@ from conftest import ROOT, box_distance
 
 import estim
 from estim.fitting import _registry as registry
+from estim.fitting._missing_physics import SAMPLES, model_effects
 from estim.forward.laws import FrictionLaw
 
 DROP = ROOT / "data" / "scenes" / "drop.xml"
@@ -148,6 +149,27 @@ def test_impossible_compressions_are_refused():
             jax.block_until_ready(final(0.03))
     with pytest.raises(ValueError, match=r"closer than its contact radius 0.025 \(radius - compression\)"):
         estim.simulate(scene, estim.Params(0.8, 1.0, 0.02, (0.0, 0.0, 0.022), (0.0, 0.0, 0.0), compression=-0.005), 0.5)
+
+
+def test_the_effect_report_sizes_the_compression():
+    """``model_effects`` (``estim fit --effects``) lists a compressed ball's compression,
+    sized against the rigid ball: a drop from rest bouncing once, against the two closed
+    forms (fall to ``rho``, rise at ``e`` times the impact speed) at the same samples."""
+    scene = estim.load_scene(DROP)
+    z0, e, c, span, noise = 0.5, 0.8, 0.003, 0.6, 0.001
+    p = estim.Params.for_ball(scene, "pingpong", e=e, mu_t=1.0, position=(0.0, 0.0, z0), compression=c)
+    [entry] = model_effects(scene, p, span, noise, samples=SAMPLES)
+    assert entry["effect"] == "compression at the bounce" and entry["switched_off"] == "compression = 0"
+
+    def height(t, rho):
+        t1 = np.sqrt(2 * (z0 - rho) / G)
+        after = t - t1
+        return np.where(t < t1, z0 - 0.5 * G * t * t, rho + e * G * t1 * after - 0.5 * G * after * after)
+
+    t = np.linspace(0.0, span, SAMPLES)
+    deviation = np.max(np.abs(height(t, R - c) - height(t, R)))
+    assert entry["max_deviation_mm"] == pytest.approx(deviation * 1e3, rel=1e-9)
+    assert entry["noise_levels"] == pytest.approx(deviation / noise, rel=1e-9) and entry["verdict"] == "measured"
 
 
 def soft_drop(solref="0.01 0.1", hz=180.0, t_end=1.1):

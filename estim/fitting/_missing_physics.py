@@ -44,7 +44,9 @@ default or a prior). The effects, where the scene and the ball have them:
   spin against none, both without Magnus, so that the entry isolates what the spin does
   to the bounces;
 - ``friction at the bounce``: under such a law, its friction coefficient ``mu`` against 0
-  (a frictionless bounce keeps the tangential velocity and the spin).
+  (a frictionless bounce keeps the tangential velocity and the spin);
+- ``compression at the bounce``: a ball with a compression (``estim.Params``, fitted on
+  request) against the rigid ball, whose contacts are at its radius.
 
 Cost: one closed-form vacuum run and one ODE run (still air; a second run of the same
 compiled program for the spinning ball when a spin is given). The ODE program compiles
@@ -304,7 +306,7 @@ def model_effects(
 
     Returns:
         One dict per effect the scene and the ball have (``[]`` in a vacuum under the seed's
-        law): ``effect``, ``switched_off`` (what the run without it changes, e.g.
+        law, for a rigid ball): ``effect``, ``switched_off`` (what the run without it changes, e.g.
         ``"drag_coefficient = 0"``), ``max_deviation_mm`` (the largest distance between the
         two runs over the whole track, bounces included), ``noise_levels`` (that distance
         over ``noise_m``) and ``verdict``: ``"measured"`` (at least :data:`EXPLAINS` noise
@@ -342,6 +344,9 @@ def model_effects(
                          (scene, dataclasses.replace(lifeless, spin=jnp.zeros(3))), (scene, lifeless)))
         if float(params.mu) > 0:
             runs.append(("friction at the bounce", "mu = 0", (scene, dataclasses.replace(params, mu=zero)), None))
+    if float(params.compression) != 0:
+        runs.append(("compression at the bounce", "compression = 0",
+                     (scene, dataclasses.replace(params, compression=zero)), None))
     if not runs:
         return []
     ts = jnp.linspace(0.0, t_span, int(samples))
