@@ -174,7 +174,8 @@ def test_replay_uses_every_fitted_parameter(tmp_path):
     tracks = {"pingpong": (t, np.full((t.size, 3), 0.5))}
     motion = estim.replay_motion(scene, str(fit), tracks, fps=20)
     v = AIR_FIT
-    assert motion.params["pingpong"] == {**v, "lift_factor": 1.0, "pixel_scale": 1.0}  # (defaults: not in this fit)
+    assert motion.params["pingpong"] == {**v, "lift_factor": 1.0, "pixel_scale": 1.0,
+                                         "compression": 0.0}  # (defaults: not in this fit)
     assert motion.free["pingpong"] == tuple(names)
     caption = motion.caption("pingpong")
     for part in ("vy0 = 0.150 m/s", "drag_coefficient = 0.600", "spin_y = -60.000 rad/s"):
