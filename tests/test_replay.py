@@ -129,7 +129,7 @@ def test_motion_follows_the_fit_and_the_data(motion, stairs):
         np.testing.assert_allclose(motion.measured[b][:, 1], y)
         # Every parameter of the registry: the fit's where it gives one, else the default.
         # (the air's parameters and the friction law's mu do not act in this scene)
-        defaults = {"y0": y, "vy0": 0.0, "vz0": 0.0, "t0": 0.0, "pixel_scale": 1.0}
+        defaults = {"y0": y, "vy0": 0.0, "vz0": 0.0, "t0": 0.0, "pixel_scale": 1.0, "compression": 0.0}
         assert motion.params[b] == {**v, **defaults}
         assert motion.caption(b) == f"e = {v['e']:.3f}   mu_t = {v['mu_t']:.3f}   vx0 = {v['vx0']:.3f} m/s"
 

@@ -443,9 +443,12 @@ def _format_simulation(out: dict) -> str:
         f"velocity ({p['vx0']}, {p['vy0']}, {p['vz0']}) m/s, t_end = {p['t_end']} s",
     ]
     # The rest of the registry's parameters that the simulation used (in a scene with air:
-    # the drag coefficient and the spin), one entry each.
+    # the drag coefficient and the spin), one entry each; an opt-in effect (e_slope,
+    # compression) only where it is switched on, not at zero.
     for entry in registry.REGISTRY:
         if entry.name in ("e", "mu_t", "position", "velocity") or entry.components[0] not in p:
+            continue
+        if entry.opt_in and all(p[c] == 0 for c in entry.components):
             continue
         numbers = ", ".join(f"{p[c]}" for c in entry.components)
         lines.append(f"{entry.name} = {numbers if len(entry.components) == 1 else '(' + numbers + ')'}"

@@ -156,7 +156,8 @@ def check_outside(scene: Scene, params: Params, names=None) -> None:
         return
     batch = params.batch_shape
     p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
-    r = np.broadcast_to(np.asarray(params.contact_radius), batch).reshape(-1)
+    # (In NumPy: inside a user's jit even concrete fields' JAX arithmetic is traced.)
+    r = np.broadcast_to(np.asarray(params.radius) - np.asarray(params.compression), batch).reshape(-1)
     inside_box, inside_plane = inside(np, scene, p, r)
     bad = np.flatnonzero(inside_box.any(axis=1) | inside_plane.any(axis=1))
     if bad.size:
