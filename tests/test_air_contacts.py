@@ -48,7 +48,7 @@ def _throws(n, seed):
     spin = rng.normal(size=(n, 3)) * 150.0
     return estim.Params(np.full(n, 0.8), np.full(n, 0.9), np.full(n, RADIUS), pos, vel, mass=np.full(n, MASS),
                         drag_coefficient=np.full(n, 0.5), spin=spin, mu=np.zeros(n), inertia=np.full(n, 0.4),
-                        lift_factor=np.ones(n), e_slope=np.zeros(n))
+                        lift_factor=np.ones(n), e_slope=np.zeros(n), compression=np.zeros(n))
 
 
 def test_step_bound_holds_against_an_independent_integration(windy):
