@@ -53,7 +53,7 @@ ROW_LEAVES = 7
 def param_rows(flat: Params):
     """Flat parameters as rows per ball, ``ROW_LEAVES`` fields each: ``(rows, layouts,
     treedef)``, the rows' layouts (``estim.forward._record``, a part ``"leaves"`` each) and
-    the tree of the fields. The first row holds e, mu_t, radius, position and velocity."""
+    the tree of the fields. The first row holds e, mu_t, radius, position, velocity and compression."""
     leaves, treedef = jax.tree.flatten(flat)
     groups = [{"leaves": tuple(leaves[i:i + ROW_LEAVES])} for i in range(0, len(leaves), ROW_LEAVES)]
     layouts = tuple(layout_of(group, 1) for group in groups)

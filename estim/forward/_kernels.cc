@@ -636,10 +636,17 @@ void write_segment(const Segment& s, double* o) {
 }
 
 struct Ball {
-  double e, mu_t, radius;
+  double e, mu_t, radius;  // radius: the contact radius
   V3 position, velocity;
   Rates rates;
 };
+
+// The radius every contact reads, estim.Params.contact_radius: radius - compression; NaN
+// where the radius itself is not > 0, so that the radius check fails where the JAX path's
+// does (estim.forward._simulate).
+inline double contact_radius(double radius, double compression) {
+  return radius > 0 ? radius - compression : std::numeric_limits<double>::quiet_NaN();
+}
 
 struct Step {  // the state a segment starts from, and its structure so far
   double t;
@@ -1150,39 +1157,44 @@ bool one_or_each(const Outer& outer, const ffi::Buffer<ffi::F64>& b, int natural
 
 // The balls' parameters, each one per ball or one for all.
 struct BallBuffers {
-  ffi::Buffer<ffi::F64> e, mu_t, radius, position, velocity;
+  ffi::Buffer<ffi::F64> e, mu_t, radius, position, velocity, compression;
   int64_t N;
 
   bool fit(const Outer& outer) const {
     return one_or_each(outer, e, 1, N) && one_or_each(outer, mu_t, 1, N) && one_or_each(outer, radius, 1, N) &&
-           one_or_each(outer, position, 2, N) && one_or_each(outer, velocity, 2, N);
+           one_or_each(outer, position, 2, N) && one_or_each(outer, velocity, 2, N) &&
+           one_or_each(outer, compression, 1, N);
   }
   Ball ball(const Outer& outer, int64_t o, int64_t i) const {
     const double e_i = *item(outer, e, 1, o, i, N), mu_i = *item(outer, mu_t, 1, o, i, N);
-    return Ball{e_i, mu_i, *item(outer, radius, 1, o, i, N), load3(item(outer, position, 2, o, i, N)),
-                load3(item(outer, velocity, 2, o, i, N)), Rates(e_i, mu_i)};
+    const double r = contact_radius(*item(outer, radius, 1, o, i, N), *item(outer, compression, 1, o, i, N));
+    return Ball{e_i, mu_i, r, load3(item(outer, position, 2, o, i, N)), load3(item(outer, velocity, 2, o, i, N)),
+                Rates(e_i, mu_i)};
   }
 };
 
 // The balls as rows of parameters (estim.forward._record's packing of estim.Params), with the
-// columns where e, mu_t, radius, position and velocity start.
+// columns where e, mu_t, radius, position, velocity and compression start.
 struct BallRows {
   ffi::Buffer<ffi::F64> rows;
   ffi::Span<const int64_t> columns;
 
   bool fit(const Outer& outer) const {
     const auto d = rows.dimensions();
-    if (!outer.fits(d, 2) || columns.size() != 5) return false;
+    if (!outer.fits(d, 2) || columns.size() != 6) return false;
     const int64_t width = d[d.size() - 1];
-    for (size_t k = 0; k < 5; ++k)  // e, mu_t, radius: one column; position, velocity: three
-      if (columns[k] < 0 || columns[k] + (k < 3 ? 1 : 3) > width) return false;
+    for (size_t k = 0; k < 6; ++k) {  // position, velocity: three columns; the others one
+      const bool vector = k == 3 || k == 4;
+      if (columns[k] < 0 || columns[k] + (vector ? 3 : 1) > width) return false;
+    }
     return true;
   }
   Ball ball(const Outer& outer, int64_t o, int64_t i) const {
     const auto d = rows.dimensions();
     const double* r = at(outer, rows, o) + d[d.size() - 1] * i;
     const double e = r[columns[0]], mu = r[columns[1]];
-    return Ball{e, mu, r[columns[2]], load3(r + columns[3]), load3(r + columns[4]), Rates(e, mu)};
+    return Ball{e, mu, contact_radius(r[columns[2]], r[columns[5]]), load3(r + columns[3]), load3(r + columns[4]),
+                Rates(e, mu)};
   }
 };
 
@@ -1377,7 +1389,8 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
 ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers,
                           ffi::Buffer<ffi::S32> scene_integers, ffi::Buffer<ffi::F64> e, ffi::Buffer<ffi::F64> mu_t,
                           ffi::Buffer<ffi::F64> radius, ffi::Buffer<ffi::F64> position,
-                          ffi::Buffer<ffi::F64> velocity, ffi::Buffer<ffi::F64> mass, ffi::Buffer<ffi::F64> drag,
+                          ffi::Buffer<ffi::F64> velocity, ffi::Buffer<ffi::F64> compression,
+                          ffi::Buffer<ffi::F64> mass, ffi::Buffer<ffi::F64> drag,
                           ffi::Buffer<ffi::F64> spin, ffi::Buffer<ffi::F64> t_end, ffi::Buffer<ffi::F64> ts,
                           ffi::ResultBuffer<ffi::F64> record, ffi::ResultBuffer<ffi::S32> flags, int64_t max_segments,
                           int64_t max_events, bool checks, ffi::Span<const int64_t> fields, std::string_view messages,
@@ -1386,7 +1399,7 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numb
   const Outer outer(record->dimensions(), 2);  // record: (..., N, numbers)
   const auto own = record->dimensions();
   const int64_t N = own[own.size() - 2], n_numbers = own[own.size() - 1];
-  const BallBuffers bb{e, mu_t, radius, position, velocity, N};
+  const BallBuffers bb{e, mu_t, radius, position, velocity, compression, N};
   // mass, drag and spin (read by the checks only) come one per ball or one for all; no
   // mass at all where the parameters have none.
   const bool mass_shaped = outer.fits(mass.dimensions(), 1), has_mass = mass_shaped && items(mass, 1) > 0;
@@ -1454,7 +1467,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimPlan, PlanImpl,
                                   .Ret<ffi::Buffer<ffi::S32>>()  // n_segments
                                   .Ret<ffi::Buffer<ffi::PRED>>()  // complete
                                   .Attr<ffi::Span<const int64_t>>("counts")    // the scene's faces, solids, boxes, planes
-                                  .Attr<ffi::Span<const int64_t>>("columns"));  // of e, mu_t, radius, position, velocity
+                                  .Attr<ffi::Span<const int64_t>>("columns"));  // of e, mu_t, radius, position, velocity, compression
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimTrajectory, TrajectoryImpl,
                               scene_binding()
@@ -1463,6 +1476,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimTrajectory, TrajectoryImpl,
                                   .Arg<ffi::Buffer<ffi::F64>>()  // radius
                                   .Arg<ffi::Buffer<ffi::F64>>()  // position
                                   .Arg<ffi::Buffer<ffi::F64>>()  // velocity
+                                  .Arg<ffi::Buffer<ffi::F64>>()  // compression
                                   .Arg<ffi::Buffer<ffi::F64>>()  // mass (or empty)
                                   .Arg<ffi::Buffer<ffi::F64>>()  // drag coefficient
                                   .Arg<ffi::Buffer<ffi::F64>>()  // spin

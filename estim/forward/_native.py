@@ -155,15 +155,6 @@ def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
     return (join(numbers, jnp.float64), join(integers, jnp.int32)), counts
 
 
-def _as_kernels_read(params: Params) -> Params:
-    """The parameters as the kernels read them: the contact radius (``radius -
-    compression``) as the radius, because in what they run (:func:`supports`: no air, the
-    factor law) a ball's radius acts only through its contacts; NaN where the radius is
-    not > 0, so that the kernels' radius check fails where the JAX path's does."""
-    radius = jnp.where(params.radius > 0, params.contact_radius, jnp.nan)
-    return eqx.tree_at(lambda p: (p.radius, p.compression), params, (radius, jnp.zeros_like(params.compression)))
-
-
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     """``estim.forward._solver.plan`` on the native kernel, for balls of any batch shape: the
     discrete structure of each ball's solution and its segments, as values (no
@@ -172,14 +163,15 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
     _check_supported(scene)
     _register()
-    scene, params, t_end = jax.lax.stop_gradient((scene, _as_kernels_read(params), jnp.asarray(t_end, jnp.float64)))
+    scene, params, t_end = jax.lax.stop_gradient((scene, params, jnp.asarray(t_end, jnp.float64)))
     batch = params.batch_shape
     # One row of parameters per ball, packed as the JAX loop over balls packs them
     # (estim.forward._simulate.map_balls): where both run, as in a derivative, XLA gathers them once.
     flat = flat_params(params)
     n = flat.e.shape[0]
     (rows, *_), (layout, *_), _ = param_rows(flat)  # (the first row: the fields the kernels read)
-    param_columns = np.array([leaf.start for leaf in layout.parts[0][2][:5]], dtype=np.int64)  # e, mu_t, radius, position, velocity
+    # e, mu_t, radius, position, velocity, compression
+    param_columns = np.array([leaf.start for leaf in layout.parts[0][2][:6]], dtype=np.int64)
     S = max_segments
 
     def out(shape, dtype):
@@ -256,7 +248,6 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
 
     _check_supported(scene)
     _register()
-    params = _as_kernels_read(params)
     batch = params.batch_shape
     n = math.prod(batch)
     layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep)
@@ -273,7 +264,8 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
     (scene_numbers, scene_integers), counts = _scene_operands(scene)
     return call(scene_numbers, scene_integers, one_or_each(params.e, each.e, ()), one_or_each(params.mu_t, each.mu_t, ()),
                 one_or_each(params.radius, each.radius, ()), one_or_each(params.position, each.position, (3,)),
-                one_or_each(params.velocity, each.velocity, (3,)), mass,
+                one_or_each(params.velocity, each.velocity, (3,)),
+                one_or_each(params.compression, each.compression, ()), mass,
                 one_or_each(params.drag_coefficient, each.drag_coefficient, ()), one_or_each(params.spin, each.spin, (3,)),
                 t_end, ts,
                 max_segments=np.int64(max_segments), max_events=np.int64(max_events), checks=bool(checks),

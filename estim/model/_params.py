@@ -81,6 +81,9 @@ class Params(eqx.Module):
     radius: Float[Array, "*batch"]
     position: Float[Array, "*batch 3"]
     velocity: Float[Array, "*batch 3"]
+    # (Next to the fields the native kernels read: they take the contact radius from the
+    # first row of a ball's packed parameters, estim.forward._balls.param_rows.)
+    compression: Float[Array, "*batch"]
     mass: Float[Array, "*batch"] | None
     drag_coefficient: Float[Array, "*batch"]
     spin: Float[Array, "*batch 3"]
@@ -88,7 +91,6 @@ class Params(eqx.Module):
     inertia: Float[Array, "*batch"]
     lift_factor: Float[Array, "*batch"]
     e_slope: Float[Array, "*batch"]
-    compression: Float[Array, "*batch"]
 
     def __init__(self, e, mu_t, radius, position, velocity, *, mass=None,
                  drag_coefficient=DRAG_COEFFICIENT, spin=(0.0, 0.0, 0.0), mu=0.0, inertia=SOLID_INERTIA,
@@ -98,6 +100,7 @@ class Params(eqx.Module):
         self.radius = _float64("radius", radius)
         self.position = _float64("position", position)
         self.velocity = _float64("velocity", velocity)
+        self.compression = _float64("compression", compression)
         self.mass = None if mass is None else _float64("mass", mass)
         self.drag_coefficient = _float64("drag_coefficient", drag_coefficient)
         self.spin = _float64("spin", spin)
@@ -105,7 +108,6 @@ class Params(eqx.Module):
         self.inertia = _float64("inertia", inertia)
         self.lift_factor = _float64("lift_factor", lift_factor)
         self.e_slope = _float64("e_slope", e_slope)
-        self.compression = _float64("compression", compression)
 
     def __check_init__(self):
         for name in ("position", "velocity", "spin"):
