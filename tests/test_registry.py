@@ -156,14 +156,21 @@ def test_what_acts_follows_the_law_and_the_air():
     assert "e_slope" not in registry.acting(drop) and "compression" in registry.acting(drop)
     vacuum_table = table.with_air(None)
     assert {"mu", "spin_y"} <= registry.acting(vacuum_table) and "drag_coefficient" not in registry.acting(vacuum_table)
-    with pytest.raises(ValueError, match=r"mu_t acts only under a contact law that reads it"):
+    with pytest.raises(ValueError, match=r"mu_t acts only under a contact law that reads it \(factor; a scene "
+                       r"declares its law with <custom><text name=\"estim:law\" data=\"factor\"/>"):
         registry.check_acting(table, ("e", "mu_t"))
+    # The message names the law that reads the parameter, and how a scene declares it.
+    with pytest.raises(ValueError, match=r"e_slope acts only .*\(friction; .*data=\"friction\""):
+        registry.check_acting(drop, ("e", "e_slope"))
     with pytest.raises(ValueError, match=r"spin_y acts only in a scene with air .* or under a contact law"):
         registry.check_acting(drop, ("spin_y",))
     assert registry.default_free(drop, lateral=False) == ("e", "mu_t", "vx0", "x0", "z0")
     assert registry.default_free(drop, lateral=True)[-2:] == ("y0", "vy0")
     assert registry.default_free(table, lateral=True) == (
         "e", "mu", "x0", "y0", "z0", "vx0", "vy0", "vz0", "spin_x", "spin_y", "spin_z")
+    # A side view's pixel track: the law's coefficients and the release in the view's plane.
+    assert registry.side_view_free(drop) == ("e", "mu_t", "vx0", "vz0", "x0", "z0")
+    assert registry.side_view_free(table) == ("e", "mu", "vx0", "vz0", "x0", "z0")
 
 
 def test_starting_values_hold_the_data_or_the_default():

@@ -238,6 +238,29 @@ def test_pixel_estimators_recover_truth(tmp_path):
     assert r.measured[1:-1].all() and not r.measured[0]
 
 
+@pytest.mark.slow
+def test_side_view_drops_fit_together_under_the_friction_law(tmp_path, capsys):
+    """Two side-view pixel drops (e = 0.8, closed form above) in a drop scene that declares
+    the friction law, fitted together (``estim fit A B --pixels --shared e``): each clip
+    fits the law's own tangential coefficient (mu, not the factor law's mu_t), and the
+    shared e is the drops' 0.8."""
+    from estim.app._cli import main
+
+    scene = tmp_path / "drop_friction.xml"
+    scene.write_text(DROP.read_text().replace(
+        "<worldbody>", '<custom><text name="estim:law" data="friction"/></custom>\n  <worldbody>'))
+    files = []
+    for k, h in enumerate((1.0, 0.8)):
+        text, _ = _pixel_drop(h=h, seed=k, n=200)
+        files.append(str(_write(tmp_path, text, f"drop{k}.txt")))
+    assert main(["fit", *files, "--pixels", "--frame-interval", "0.01", "--scene", str(scene), "--ball", "pingpong",
+                 "--shared", "e", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["shared"]["e"] == pytest.approx(0.8, abs=0.01), out["shared"]
+    for clip in out["clips"].values():  # (stderr: one entry per fitted parameter)
+        assert "mu" in clip["stderr"] and "mu_t" not in clip["stderr"], clip["stderr"]
+
+
 def test_restitution_on_synthetic_drop():
     scene = estim.load_scene(DROP)
     assert [b.name for b in scene.balls] == ["pingpong"] and scene.names == ("table",)

@@ -20,7 +20,6 @@ from ..fitting import _registry as registry
 from ..fitting._image import default_image_free
 from ..fitting._job import (
     EXPORTS,
-    PIXEL_FREE,
     fit_csv,
     fit_export,
     fit_files,
@@ -738,7 +737,7 @@ def _cmd_fit_clips(args, scene, say) -> int:
             args.tracks, scene, shared=tuple(args.shared), pixels=args.pixels, ball=args.ball,
             frame_interval=args.frame_interval, metres_per_pixel=args.metres_per_pixel,
             from_bounce=args.from_bounce, say=say, loss=args.loss, devices=devices,
-            **_also(args, PIXEL_FREE if args.pixels else scene, priors=False))
+            **_also(args, registry.side_view_free(scene) if args.pixels else scene, priors=False))
     payload = result.to_json()
     if jax.process_index() > 0:  # every process holds the result: process 0 reports it
         return 0 if result.converged else 1
@@ -845,7 +844,7 @@ def _cmd_fit(args) -> int:
         result, data, scale, row = fit_pixels(
             args.tracks, scene, ball=args.ball, frame_interval=args.frame_interval,
             metres_per_pixel=args.metres_per_pixel, from_bounce=args.from_bounce, say=say,
-            loss=args.loss, **_also(args, PIXEL_FREE))
+            loss=args.loss, **_also(args, registry.side_view_free(scene)))
         extra = {"metres_per_pixel": scale, "surface_row_px": row,
                  "frame_interval_s": args.frame_interval}
     else:

@@ -13,13 +13,11 @@ from ..tracks._csv import Tracks, read_tracks_csv
 from ..tracks._exports import read_kinovea, read_tracker
 from ..tracks._image import read_image_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
+from . import _registry as registry
 from ._fit import fit
 from ._image import fit_image
 from ._initial import initial_guess, split_flights
 from ._pooled import Clip, fit_clips
-
-# A drop filmed from the side starts with an unknown vertical speed.
-PIXEL_FREE = ("e", "mu_t", "vx0", "vz0", "x0", "z0")
 
 
 def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
@@ -92,10 +90,11 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
     read the real drops' scale 13% high. ``b_s`` lies one ball radius below the row where consecutive
     flight parabolas meet (the ball centre at contact; :func:`estimate_surface_row`).
     Frames before the release (the ball still in the hand) are skipped, the release time
-    ``t0`` is held at the first fitted sample, and :func:`fit` estimates ``e``, ``mu_t``,
-    ``vx0`` and the release state ``x0``, ``z0``, ``vz0`` (by default; ``free=`` changes
-    them: a drop filmed from the side starts with an unknown vertical speed) in metres and
-    seconds. Convert residuals back to pixels by dividing by the returned scale
+    ``t0`` is held at the first fitted sample, and :func:`fit` estimates the scene's law's
+    coefficients (``e`` and ``mu_t``, or under the friction law ``e`` and ``mu``), ``vx0``
+    and the release state ``x0``, ``z0``, ``vz0`` (by default, ``registry.side_view_free``;
+    ``free=`` changes them: a drop filmed from the side starts with an unknown vertical
+    speed) in metres and seconds. Convert residuals back to pixels by dividing by the returned scale
     (``result.balls[ball].rms_m / s``).
 
     Args:
@@ -138,7 +137,7 @@ def fit_pixels(path, scene: Scene | str, *, ball: str, frame_interval: float,
         t = np.concatenate([t, np.full(extra, t[-1])])
         pos = np.concatenate([pos, np.full((extra, 3), np.nan)])
     fixed = {ball: clip.fixed}
-    free = options.pop("free", PIXEL_FREE)
+    free = options.pop("free", registry.side_view_free(scene))
     result = fit(scene, {ball: (t, pos)}, free=free, fixed=fixed, progress=say, anchors={ball: clip.anchor},
                  **options)
     result.source = os.fspath(path)
@@ -260,6 +259,6 @@ def fit_files(paths, scene: Scene | str, *, shared, pixels: bool = False, ball: 
     if alone:
         raise ValueError(f"ball(s) {alone} appear in only one clip: shared parameters need a ball "
                          "in at least two clips")
-    free = options.pop("free", PIXEL_FREE if pixels else None)
+    free = options.pop("free", registry.side_view_free(scene) if pixels else None)
     result = fit_clips(scene, clips, shared=shared, free=free, progress=say, **options)
     return result, {c.label: (c.t, c.position) for c in clips}

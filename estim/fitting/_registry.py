@@ -50,9 +50,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..forward.laws import law_of
+from ..forward.laws import law_of, laws_reading
 from ..model._params import DRAG_COEFFICIENT, Params
-from ..model._scene import Ball, Scene
+from ..model._scene import LAWS, Ball, Scene
 from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
 from ._loss import array_namespace
 
@@ -278,20 +278,30 @@ def _read_by_law(field: str) -> Callable[[Scene], bool]:
 MAX_CAMERAS = 4
 
 IN_AIR = "in a scene with air (<option density=...>)"
-UNDER_LAW = "under a contact law that reads it (the scene's estim:law)"
+
+
+def _under_law(field: str) -> str:
+    """Where a parameter that a contact law reads acts, for messages: the laws that read
+    it, and how a scene declares one (``estim.model._scene``); ``""`` where every law reads it."""
+    names = laws_reading(field)
+    if len(names) == len(LAWS):
+        return ""
+    return (f"under a contact law that reads it ({' or '.join(names)}; a scene declares its law with "
+            f'<custom><text name="estim:law" data="{names[-1]}"/></custom>, the factor law where it declares none)')
+
 
 REGISTRY: tuple[Parameter, ...] = (
     Parameter("e", field="e", transform=Sigmoid(), default=E_DEFAULT, start=lambda s: (s.e,),
-              show="always", needs_bounce=True, acts=_read_by_law("e"), acts_where=UNDER_LAW,
+              show="always", needs_bounce=True, acts=_read_by_law("e"), acts_where=_under_law("e"),
               doc="coefficient of restitution: an impact turns the normal velocity into -e times itself"),
     Parameter("mu_t", field="mu_t", transform=Sigmoid(), default=MU_DEFAULT, start=lambda s: (s.mu_t,),
-              show="always", needs_bounce=True, acts=_read_by_law("mu_t"), acts_where=UNDER_LAW,
+              show="always", needs_bounce=True, acts=_read_by_law("mu_t"), acts_where=_under_law("mu_t"),
               doc="tangential coefficient of the factor law: an impact scales the tangential velocity by mu_t"),
     Parameter("mu", field="mu", transform=Sigmoid(), default=FRICTION_DEFAULT, start=lambda s: (s.mu,),
-              show="always", needs_bounce=True, acts=_read_by_law("mu"), acts_where=UNDER_LAW,
+              show="always", needs_bounce=True, acts=_read_by_law("mu"), acts_where=_under_law("mu"),
               doc="Coulomb friction coefficient of the friction law (estim.FrictionLaw), in (0, 1)"),
     Parameter("e_slope", field="e_slope", default=0.0, unit="s/m", needs_bounce=True, opt_in=True,
-              acts=_read_by_law("e_slope"), acts_where=UNDER_LAW,
+              acts=_read_by_law("e_slope"), acts_where=_under_law("e_slope"),
               doc="change of e per m/s of normal impact speed (negative: e falls as impacts get faster), "
                   "about the friction law's reference speed 2.446 m/s (the ITTF drop test's)"),
     Parameter("compression", field="compression", default=0.0, unit="m", needs_bounce=True, opt_in=True,
@@ -535,6 +545,9 @@ def check_acting(scene: Scene, names: Iterable[str], what: str = "fitting") -> N
 # lateral release state too (``LATERAL``).
 FACTOR_FREE = ("e", "mu_t", "vx0", "x0", "z0")
 LATERAL = ("y0", "vy0")
+# A drop filmed from the side (a pixel track read at one scale) starts with an unknown
+# vertical speed; it has no y.
+SIDE_VIEW = ("vx0", "vz0", "x0", "z0")
 
 
 def default_free(scene: Scene, lateral: bool, known: Iterable[str] = ()) -> tuple[str, ...]:
@@ -554,9 +567,21 @@ def default_free(scene: Scene, lateral: bool, known: Iterable[str] = ()) -> tupl
     if not law_of(scene).couples_spin:
         base = FACTOR_FREE + (LATERAL if lateral else ())
         return base + tuple(n for n in known if n not in base)
-    coefficients = tuple(p.name for p in REGISTRY if p.needs_bounce and not p.opt_in and p.acts(scene))
+    coefficients = _law_coefficients(scene)
     coefficients += tuple(n for n in known if n not in coefficients)
     return coefficients + expand(("position", "velocity", "spin"))
+
+
+def side_view_free(scene: Scene) -> tuple[str, ...]:
+    """What a fit of a side view's pixel track estimates by default in ``scene``: the
+    coefficients of the scene's law that act there (``e`` and ``mu_t`` under the factor
+    law, ``e`` and ``mu`` under the friction law) and the release state in the view's plane
+    (``SIDE_VIEW``)."""
+    return _law_coefficients(scene) + SIDE_VIEW
+
+
+def _law_coefficients(scene: Scene) -> tuple[str, ...]:
+    return tuple(p.name for p in REGISTRY if p.needs_bounce and not p.opt_in and p.acts(scene))
 
 
 def to_params(values: Mapping[str, Any], *, radius, mass=None, inertia=None, scene: Scene | None = None) -> Params:

@@ -36,13 +36,11 @@ import functools
 import math
 import os
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._config import keep_loop
-from ..model._params import Params
 from ..model._scene import Scene
 from . import _constants
 from ._balls import ball_parts, flat_params, map_balls, param_rows

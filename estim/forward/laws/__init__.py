@@ -11,6 +11,7 @@ from ._base import AbstractSummableLaw as AbstractSummableLaw
 from ._base import Series as Series
 from ._base import series as series
 from ._default import law_of as law_of
+from ._default import laws_reading as laws_reading
 from ._factor import FactorCoefficients as FactorCoefficients
 from ._factor import FactorLaw as FactorLaw
 from ._friction import FrictionCoefficients as FrictionCoefficients

@@ -28,3 +28,9 @@ def law_of(scene: Scene) -> AbstractContactLaw:
     if not isinstance(law, AbstractContactLaw):
         raise TypeError(f"Scene.law must be an estim contact law (AbstractContactLaw), got {type(law).__name__}")
     return law
+
+
+def laws_reading(field: str) -> tuple[str, ...]:
+    """The names of the laws (``estim.model._scene.LAWS``) that read the :class:`estim.Params`
+    field ``field`` (``AbstractContactLaw.reads``), in the order of ``LAWS``."""
+    return tuple(name for name, law in BY_NAME.items() if field in law.reads())
