@@ -53,6 +53,19 @@ def test_import_raises_the_small_loop_threshold():
     assert flags == f"--xla_cpu_enable_fast_math=false --xla_backend_extra_options={_OPTION}"
 
 
+def test_import_starts_no_backend():
+    """Importing estim (every module of it, the CLI's included) and building the CLI's
+    parser and help leave JAX's backend unstarted: ``jax.distributed.initialize`` (``estim fit --distributed``) and ``estim
+    bench --cpus`` must come before it starts. (A registry message that traced a contact
+    law at import once started it.)"""
+    code = ("import estim, estim.app._cli\n"
+            "estim.app._cli.build_parser().format_help()\n"
+            "from jax._src import xla_bridge\n"
+            "print(xla_bridge.backends_are_initialized())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "False", out.stderr
+
+
 def test_a_users_extra_options_are_left_alone():
     mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1024"
     assert _probe(xla_flags=mine) == [False, mine]

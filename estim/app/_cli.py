@@ -387,7 +387,7 @@ def _simulation_values(args, scene, spec) -> dict[str, float]:
         if why:
             raise UsageError(f"{_flag(name)} {why}, got {v}")
         if scene is not None and not entry.acts(scene):
-            raise UsageError(f"{_flag(name)}: {name} acts only {entry.acts_where}, and this scene does "
+            raise UsageError(f"{_flag(name)}: {name} acts only {registry.where_it_acts(name)}, and this scene does "
                              "not have it")
     if spec is None:
         return {}

@@ -280,28 +280,20 @@ MAX_CAMERAS = 4
 IN_AIR = "in a scene with air (<option density=...>)"
 
 
-def _under_law(field: str) -> str:
-    """Where a parameter that a contact law reads acts, for messages: the laws that read
-    it, and how a scene declares one (``estim.model._scene``); ``""`` where every law reads it."""
-    names = laws_reading(field)
-    if len(names) == len(LAWS):
-        return ""
-    return (f"under a contact law that reads it ({' or '.join(names)}; a scene declares its law with "
-            f'<custom><text name="estim:law" data="{names[-1]}"/></custom>, the factor law where it declares none)')
-
+UNDER_LAW = "under a contact law that reads it (the scene's estim:law)"
 
 REGISTRY: tuple[Parameter, ...] = (
     Parameter("e", field="e", transform=Sigmoid(), default=E_DEFAULT, start=lambda s: (s.e,),
-              show="always", needs_bounce=True, acts=_read_by_law("e"), acts_where=_under_law("e"),
+              show="always", needs_bounce=True, acts=_read_by_law("e"), acts_where=UNDER_LAW,
               doc="coefficient of restitution: an impact turns the normal velocity into -e times itself"),
     Parameter("mu_t", field="mu_t", transform=Sigmoid(), default=MU_DEFAULT, start=lambda s: (s.mu_t,),
-              show="always", needs_bounce=True, acts=_read_by_law("mu_t"), acts_where=_under_law("mu_t"),
+              show="always", needs_bounce=True, acts=_read_by_law("mu_t"), acts_where=UNDER_LAW,
               doc="tangential coefficient of the factor law: an impact scales the tangential velocity by mu_t"),
     Parameter("mu", field="mu", transform=Sigmoid(), default=FRICTION_DEFAULT, start=lambda s: (s.mu,),
-              show="always", needs_bounce=True, acts=_read_by_law("mu"), acts_where=_under_law("mu"),
+              show="always", needs_bounce=True, acts=_read_by_law("mu"), acts_where=UNDER_LAW,
               doc="Coulomb friction coefficient of the friction law (estim.FrictionLaw), in (0, 1)"),
     Parameter("e_slope", field="e_slope", default=0.0, unit="s/m", needs_bounce=True, opt_in=True,
-              acts=_read_by_law("e_slope"), acts_where=_under_law("e_slope"),
+              acts=_read_by_law("e_slope"), acts_where=UNDER_LAW,
               doc="change of e per m/s of normal impact speed (negative: e falls as impacts get faster), "
                   "about the friction law's reference speed 2.446 m/s (the ITTF drop test's)"),
     Parameter("compression", field="compression", default=0.0, unit="m", needs_bounce=True, opt_in=True,
@@ -526,6 +518,20 @@ def acting(scene: Scene) -> frozenset[str]:
     return frozenset(c for p in REGISTRY if p.acts(scene) for c in p.components)
 
 
+def where_it_acts(name: str) -> str:
+    """Where the component ``name`` acts, for a refusal: its entry's ``acts_where``, and for
+    a coefficient that only some contact laws read, those laws and how a scene declares
+    one. Asked when a message needs it, not in ``acts_where``: which laws read a field is
+    traced (``AbstractContactLaw.reads``), and importing estim or building the CLI's help
+    must not start JAX's backend (``jax.distributed.initialize`` comes first)."""
+    entry = component(name)
+    names = laws_reading(entry.field) if entry.acts_where == UNDER_LAW else LAWS
+    if len(names) == len(LAWS):
+        return entry.acts_where
+    return (f"under a contact law that reads it ({' or '.join(names)}; a scene declares its law with "
+            f'<custom><text name="estim:law" data="{names[-1]}"/></custom>, the factor law where it declares none)')
+
+
 def check_acting(scene: Scene, names: Iterable[str], what: str = "fitting") -> None:
     """Refuse components that do nothing in ``scene``: an estimate of them would be noise,
     a value given for them silently ignored.
@@ -535,7 +541,7 @@ def check_acting(scene: Scene, names: Iterable[str], what: str = "fitting") -> N
     """
     idle = [n for n in names if not component(n).acts(scene)]
     if idle:
-        where = "; ".join(f"{n} acts only {component(n).acts_where}" for n in idle)
+        where = "; ".join(f"{n} acts only {where_it_acts(n)}" for n in idle)
         raise ValueError(f"{what} {idle}: {where}, and this scene's ({type(law_of(scene)).__name__}"
                          f"{', with air' if scene.air is not None else ', no air'}) does not have it")
 
