@@ -278,8 +278,6 @@ def _read_by_law(field: str) -> Callable[[Scene], bool]:
 MAX_CAMERAS = 4
 
 IN_AIR = "in a scene with air (<option density=...>)"
-
-
 UNDER_LAW = "under a contact law that reads it (the scene's estim:law)"
 
 REGISTRY: tuple[Parameter, ...] = (
