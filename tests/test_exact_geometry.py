@@ -274,6 +274,29 @@ def test_a_ball_sliding_off_a_tread_rolls_over_its_edge(path):
     np.testing.assert_allclose(q, [edge + r * np.sqrt(1 - cos_star**2), 0.0, top + r * cos_star], rtol=0, atol=tol)
 
 
+def test_a_roll_with_almost_no_speed_along_its_edge_has_finite_derivatives():
+    """As above, rolling over step 2's edge at 0.5 m/s, with a speed along the edge of 0,
+    1e-160 m/s (whose square underflows) or 4e-308 m/s (subnormal; the case random scenes
+    found, ``tests/test_properties.py``). With mu_t = 1 no contact changes the velocity
+    along y (every normal here is across y), so y(t) = vy0 t and ``dy(t_end) / dvy0 =
+    t_end`` exactly; every derivative of the final state is finite. (The time to the edge's
+    end, ``(end - along) / vy``, had an infinite derivative there, made NaN by the minimum
+    with the roll's own end.)"""
+    scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
+    r, top, t_end = 0.05, 1.2, 1.5
+
+    def final(theta):
+        p = estim.Params(0.5, 1.0, r, jnp.array([0.5, 0.0, top + r]), jnp.stack([theta[0], theta[1], 0.0]))
+        end = estim.simulate(scene, p, t_end).final
+        return jnp.concatenate([end.position, end.velocity])
+
+    jac = jax.jit(jax.jacfwd(final))
+    for vy in (0.0, 1e-160, 3.91994034e-308):
+        J = np.asarray(jac(jnp.array([0.5, vy])))
+        assert np.all(np.isfinite(J)), (vy, J)
+        assert J[1, 1] == pytest.approx(t_end, abs=1e-12) and J[4, 1] == pytest.approx(1.0, abs=1e-12), vy
+
+
 def _pendulum_time(theta0, omega0, k, dt=1e-5):
     """Time for theta'' = k sin theta from (theta0, omega0) to k cos theta = theta'^2 (a
     ball leaving a cylinder), by classical Runge-Kutta and bisection of the last step."""

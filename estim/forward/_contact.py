@@ -366,7 +366,7 @@ def _reach_window(faces: Faces, p, v, a, horizon):
 
 
 # Edges and corners searched together; a flight near more of them at once (near a corner)
-# searches them all.
+# searches them in turns of this many.
 NEAR_PIECES = 4
 
 
@@ -378,6 +378,7 @@ def first_contact(
     exclude: Int[Array, ""],
     also: Int[Array, ""] | int = -1,
     sliding: Bool[Array, ""] | bool = False,
+    leaving: bool = False,
 ) -> tuple[Float[Array, ""], Int[Array, ""]]:
     """Earliest face the ball enters, and when: ``(tau, face)``, ``(inf, -1)`` if none.
 
@@ -390,9 +391,19 @@ def first_contact(
     over corners, so a ball landing exactly where a tread's top meets its edge lands on the
     top (the two have the same normal there).
 
+    ``leaving`` (the ODE path, where the air may press a ball into a face it does not fall
+    onto): a ball that already touches a wall (a flat face that gravity does not press
+    into: vertical, or facing down) and is pressed into it (``tau = 0``) at an end of the
+    wall, moving (or pushed) out past that end, leaves it, and does not meet it. Where a
+    tread and the riser across it end together, a ball the wind slid along both was
+    otherwise met again by the riser at the instant it left the tread, slid on it, met the
+    tread, and so on at that one instant forever. (A face gravity presses into keeps the
+    seed's rule: a ball released at a tread's edge, moving off it, touches it first.)
+
     Flat faces first, in closed form (equation (2)); then the edges and corners whose box
     of reach the flight meets before that contact (``_reaches``), each by its quartic
-    (``estim.forward._curved``), in a branch that flights far from every edge skip.
+    (``estim.forward._curved``), ``NEAR_PIECES`` at a time, in a loop that flights far from
+    every edge skip.
     """
     k = faces.n_flat
     row = faces.row[:k]
@@ -410,6 +421,15 @@ def first_contact(
     )
     index = jnp.arange(faces.rank.shape[0])
     ok = finite & (excess <= faces.radius + ON_FACE_TOL) & (index[:k] != exclude) & (index[:k] != also)
+    if leaving:
+        m = row[:, DIRECTION]
+        out = jnp.zeros(k, bool)
+        for i in range(3):  # (along the face: its own axis is the plane's)
+            rel = p[i] - centre[:, i]
+            side = jnp.where(rel >= 0, 1.0, -1.0)
+            outward = (side * v[i] > SPEED_TOL) | ((jnp.abs(v[i]) <= SPEED_TOL) & (side * a[i] > ACCEL_TOL))
+            out = out | ((m[:, i] == 0) & (jnp.abs(rel) - half[:, i] >= -ON_FACE_TOL) & outward)
+        ok = ok & ~((tau <= 0) & out & (normal[:, 2] <= AXIS_TOL))
     tau = jnp.where(ok, tau, jnp.inf)
     if faces.curved:
         pieces = eqx.tree_at(lambda f: (f.row, f.rank), faces, (faces.row[k:], faces.rank[k:]))
@@ -420,36 +440,35 @@ def first_contact(
         borders = (jnp.sum(pieces.row[:, DIRECTION] * own[DIRECTION], axis=1) == 1) & (pieces.row[:, SOLID] == own[SOLID])
         near = _reaches(pieces, p, v, a, horizon) & (index[k:] != exclude) & (index[k:] != also)
         near = near & ~(sliding & (exclude >= 0) & borders)
-        none = jnp.full(near.shape, jnp.inf)
 
         def search(rows, t0, t1):
             anchor, mask = piece_frame(eqx.tree_at(lambda f: f.row, pieces, rows))
             return _curved_time(faces, anchor, mask, rows, p, v, a, jnp.maximum(t0, 0.0), t1)
 
-        def few(_):
-            """The first NEAR_PIECES pieces the screen leaves, gathered."""
+        rank = jnp.cumsum(near) - 1
+        n = near.shape[0]
+
+        def chunk(j, found):
+            """The near pieces of ranks ``j NEAR_PIECES ...``, gathered, searched, and
+            their times put back in place."""
             # (The j-th near piece by an integer min, and back by a compare: a nonzero or a
             # scatter would be a library call in the event loop, estim._config.)
-            rank = jnp.cumsum(near) - 1
-            n = near.shape[0]
-            pick = jnp.stack([jnp.min(jnp.where(near & (rank == j), jnp.arange(n), n)) for j in range(NEAR_PIECES)])
+            pick = jnp.stack([jnp.min(jnp.where(near & (rank == j * NEAR_PIECES + i), jnp.arange(n), n))
+                              for i in range(NEAR_PIECES)])
+            real = pick < n
             pick = jnp.minimum(pick, n - 1)
             rows = pieces.row[pick]
             t0, t1 = _reach_window(eqx.tree_at(lambda f: f.row, pieces, rows), p, v, a, horizon)
-            ok = near[pick] & (t0 <= t1)
-            found = jax.lax.cond(jnp.any(ok), lambda: search(rows, t0, jnp.where(ok, t1, 0.0)),
-                                 lambda: jnp.full(ok.shape, jnp.inf))
-            found = jnp.where(ok, found, jnp.inf)
-            return jnp.min(jnp.where(pick[:, None] == jnp.arange(near.shape[0]), found[:, None], jnp.inf), axis=0)
+            ok = real & near[pick] & (t0 <= t1)
+            got = jax.lax.cond(jnp.any(ok), lambda: search(rows, t0, jnp.where(ok, t1, 0.0)),
+                               lambda: jnp.full(ok.shape, jnp.inf))
+            got = jnp.where(ok, got, jnp.inf)
+            return jnp.minimum(found, jnp.min(jnp.where(pick[:, None] == jnp.arange(n), got[:, None], jnp.inf), axis=0))
 
-        def every(_):
-            t0, t1 = _reach_window(pieces, p, v, a, horizon)
-            ok = near & (t0 <= t1)
-            return jnp.where(ok, search(pieces.row, t0, jnp.where(ok, t1, 0.0)), jnp.inf)
-
-        count = jnp.sum(near)
-        branch = jnp.where(count == 0, 0, jnp.where(count <= NEAR_PIECES, 1, 2))
-        tau = jnp.concatenate([tau, jax.lax.switch(branch, [lambda _: none, few, every], None)])
+        # NEAR_PIECES at a time: one copy of the quartic search in the program, however
+        # many pieces a flight nears (near a corner, more than NEAR_PIECES).
+        chunks = (jnp.sum(near) + NEAR_PIECES - 1) // NEAR_PIECES
+        tau = jnp.concatenate([tau, jax.lax.fori_loop(0, chunks, chunk, jnp.full(n, jnp.inf))])
 
     n_faces = tau.shape[0]
     # Ties broken by rank, then by index, with one integer min (an argmin is a two-operand
@@ -538,13 +557,17 @@ def roll_axis(faces: Faces, face, p, v):
 def roll_exit_time(faces: Faces, face, pivot, axis, p, v):
     """Time at which a ball rolling about edge ``face`` (at p, velocity v) reaches an end
     of the edge, where a corner begins (inf on a corner, whose roll stays in one plane
-    through its vertex)."""
+    through its vertex). A speed along the edge below ``SPEED_TOL`` counts as none (the
+    ball moves less than 1e-12 m per second along it): the time ``(end - along) / u`` and
+    its derivative ``-tau / u`` overflow as u goes to 0 (at u = 1e-160 m/s the derivative
+    was infinite, and the minimum with the roll's own end made it NaN)."""
     half = jnp.sum(faces.row[face, HALF] * jnp.abs(axis))
     along, u = inner(p - pivot, axis), inner(v, axis)
+    moves = jnp.abs(u) > SPEED_TOL
     end = jnp.where(u > 0, half, -half)
-    tau = (end - along) / jnp.where(u != 0, u, 1.0)
+    tau = (end - along) / jnp.where(moves, u, 1.0)
     edge = jnp.sum(1.0 - piece_at(faces, face)[1]) == 1
-    return jnp.where(edge & (u != 0), jnp.maximum(tau, 0.0), jnp.inf)
+    return jnp.where(edge & moves, jnp.maximum(tau, 0.0), jnp.inf)
 
 
 def next_piece(faces: Faces, face, axis, v):

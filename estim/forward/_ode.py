@@ -596,7 +596,7 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
 
         def predict():
             """The next event on the step's parabola, and its time on the RK path."""
-            tau_c, face_c = first_contact(faces, p, v, a0, support, wall, sliding)
+            tau_c, face_c = first_contact(faces, p, v, a0, support, wall, sliding, leaving=True)
             tau_s = jnp.where(sliding, slide_exit_time(faces, jnp.maximum(support, 0), p, v, a0), jnp.inf)
             # Past the end of its wall the ball slides on without it.
             tau_w = jnp.where(on_wall, slide_exit_time(faces, jnp.maximum(wall, 0), p, v, a0), jnp.inf)
