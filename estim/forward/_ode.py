@@ -66,9 +66,15 @@ slide on a face slides as before (the air along the face, no friction): the fric
 Gradients: as in ``estim.forward._solver``, a ``plan`` pass (``lax.while_loop``, no gradients)
 finds the discrete structure and the accepted step sizes; a ``replay`` pass (``lax.scan``)
 recomputes every step differentiably with the same step sizes (discretise-then-
-differentiate: exact derivatives of the computed solution), each event time by one Newton
-step on the guard, whose derivative is the implicit-function event-time sensitivity
-``d tau = -(dG/dtheta) / (dG/dtau)``.
+differentiate: exact derivatives of the computed solution). A step that ends at an event
+is taken to plan's root tau*, then moved by one Newton step on the guard,
+``delta = -G(tau*) / G'(tau*)``, along its own rate in tau: ``y(tau*) + y'(tau*) delta``, with
+the slope ``G'`` and the rate ``y'`` (the Runge-Kutta step's derivative in its length) held
+as values. delta's value is plan's residual (about 0) and its derivative the
+implicit-function event-time sensitivity ``d tau = -(dG/dtheta) / (dG/dtau)``; the end
+state's derivative is the chain rule's ``dy/dtheta + y' d tau``. (What the values leave
+out is multiplied by ``G(tau*)``, zero at plan's root to its tolerance; the program then
+carries no derivative of a derivative, and one step with derivatives per event, not two.)
 """
 
 from __future__ import annotations
@@ -749,30 +755,42 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         args = (n_sup, sliding, jnp.where(st.wall >= 0, face_normal(faces, jnp.maximum(st.wall, 0)), 0.0), roll)
         is_event = (st.kind == STEP_CONTACT) | (st.kind == STEP_EXIT) | (st.kind == STEP_DETACH)
         guard_of = _guard(faces, st.kind, st.face, st.bound)
-        # One Newton step at the root found by plan: its value is the root, its derivative
-        # the implicit-function event-time sensitivity.
+        # The step, to plan's event time tau* at an event. There one Newton step on the
+        # guard, tau* - G / G', moves the step's end along the step's own rate in tau: its
+        # value is plan's root, its derivative the implicit-function event-time
+        # sensitivity d tau = -dG / G', the slope G' and the rate values (module docstring).
         tau_star = jax.lax.stop_gradient(st.h)
+        h = jnp.select([st.kind == STEP_PLAIN, st.kind == STEP_LAST, is_event], [st.h, t_end - t, tau_star], 0.0)
+        y_h, _ = _rk_step(settings, f, t, h, y, args)
 
-        def guard(tau):
-            y1, _ = _rk_step(settings, f, t, tau, y, args)
+        def guard(y1, f, faces, guard_of):
+            """The event's guard at the step's end state y1."""
             flat = _guard_at(guard_of, y1[:3], y1[3:6])[0]
             push, bounds = _roll_guards(f, faces, roll, jnp.maximum(st.face, 0), _onto_piece(roll, faces.radius, y1))
             return jnp.where(rolling, jnp.where(st.kind == STEP_DETACH, push, bounds[st.bound]), flat)
 
         def newton_step():
-            gval, gslope = jax.jvp(guard, (tau_star,), (jnp.ones_like(tau_star),))
+            f_fixed = _vector_field(*jax.lax.stop_gradient((air, g, params)))
+            y_fixed, args_fixed, faces_fixed, guard_fixed = jax.lax.stop_gradient((y, args, faces, guard_of))
+
+            def end(tau):
+                y1, _ = _rk_step(settings, f_fixed, t, tau, y_fixed, args_fixed)
+                return guard(y1, f_fixed, faces_fixed, guard_fixed), y1
+
+            _, (slope, rate) = jax.jvp(end, (tau_star,), (jnp.ones_like(tau_star),))
             # No Newton step where the guard is flat (|G'| <= SPEED_TOL, as in plan's
             # ``_event_time``): an event entered at second order (zero normal speed, tau =
             # 0) has G' ~ 1e-15 from rounding, and dividing by it threw the ball ~1e15 m
             # away (then to NaN) where plan had not moved it.
             # Nor where a roll ends at its start (its guard negative there, not at a root).
-            newton = (jnp.abs(gslope) > SPEED_TOL) & (~rolling | (tau_star > 0))
-            return tau_star - jnp.where(newton, gval / jnp.where(newton, gslope, 1.0), 0.0)
+            newton = (jnp.abs(slope) > SPEED_TOL) & (~rolling | (tau_star > 0))
+            value = guard(y_h, f, faces, guard_of)
+            return -jnp.where(newton, value / jnp.where(newton, slope, 1.0), 0.0), rate
 
         # (A branch: each ball replays its own steps, estim.forward._simulate.)
-        tau_event = jax.lax.cond(is_event, newton_step, lambda: tau_star + 0.0 * t)
-        h = jnp.select([st.kind == STEP_PLAIN, st.kind == STEP_LAST, is_event], [st.h, t_end - t, tau_event], 0.0)
-        y1, _ = _rk_step(settings, f, t, h, y, args)
+        delta, rate = jax.lax.cond(is_event, newton_step, lambda: (0.0 * t, jnp.zeros_like(y)))
+        h = h + delta
+        y1 = y_h + rate * delta
         y1 = _onto_piece(roll, faces.radius, y1)
         p1, v1, w1 = y1[:3], y1[3:6], y1[6:]
         n_face = contact_normal(faces, jnp.maximum(st.face, 0), p1)
