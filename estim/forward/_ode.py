@@ -763,7 +763,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
         h = jnp.select([st.kind == STEP_PLAIN, st.kind == STEP_LAST, is_event], [st.h, t_end - t, tau_star], 0.0)
         y_h, _ = _rk_step(settings, f, t, h, y, args)
 
-        def guard(y1, f, faces, guard_of):
+        def guard(y1, f, faces, guard_of, roll):
             """The event's guard at the step's end state y1."""
             flat = _guard_at(guard_of, y1[:3], y1[3:6])[0]
             push, bounds = _roll_guards(f, faces, roll, jnp.maximum(st.face, 0), _onto_piece(roll, faces.radius, y1))
@@ -775,7 +775,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
 
             def end(tau):
                 y1, _ = _rk_step(settings, f_fixed, t, tau, y_fixed, args_fixed)
-                return guard(y1, f_fixed, faces_fixed, guard_fixed), y1
+                return guard(y1, f_fixed, faces_fixed, guard_fixed, args_fixed[3]), y1
 
             _, (slope, rate) = jax.jvp(end, (tau_star,), (jnp.ones_like(tau_star),))
             # No Newton step where the guard is flat (|G'| <= SPEED_TOL, as in plan's
@@ -784,7 +784,7 @@ def replay(scene, params, t_end, steps: Step, settings: OdeSettings, n_used=None
             # away (then to NaN) where plan had not moved it.
             # Nor where a roll ends at its start (its guard negative there, not at a root).
             newton = (jnp.abs(slope) > SPEED_TOL) & (~rolling | (tau_star > 0))
-            value = guard(y_h, f, faces, guard_of)
+            value = guard(y_h, f, faces, guard_of, roll)
             return -jnp.where(newton, value / jnp.where(newton, slope, 1.0), 0.0), rate
 
         # (A branch: each ball replays its own steps, estim.forward._simulate.)
