@@ -39,6 +39,7 @@ from .forward._trajectory import Events as Events
 from .forward._trajectory import State as State
 from .forward._trajectory import Trajectory as Trajectory
 from .forward.laws import AbstractContactLaw as AbstractContactLaw
+from .forward.laws import AbstractSeriesLaw as AbstractSeriesLaw
 from .forward.laws import AbstractSummableLaw as AbstractSummableLaw
 from .forward.laws import FactorLaw as FactorLaw
 from .forward.laws import FrictionLaw as FrictionLaw

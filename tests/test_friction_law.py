@@ -16,7 +16,14 @@ import pytest
 from conftest import ROOT
 
 import estim
-from estim.forward.laws import FactorLaw, FrictionCoefficients, FrictionLaw, law_of
+from estim.forward._constants import STEP_UNUSED, STEP_ZENO
+from estim.forward.laws import (
+    AbstractContactLaw,
+    FactorLaw,
+    FrictionCoefficients,
+    FrictionLaw,
+    law_of,
+)
 
 LAW = FrictionLaw()
 SHELL, SOLID = 2.0 / 3.0, 0.4
@@ -325,3 +332,128 @@ def test_restitution_that_falls_with_impact_speed():
     for i in range(2):
         dx = jnp.zeros(2).at[i].set(h)
         assert float(jac[i]) == pytest.approx(float(third(x0 + dx) - third(x0 - dx)) / (2 * h), rel=1e-6)
+
+
+class BounceByBounceFrictionLaw(AbstractContactLaw):
+    """The friction law without its closed-form series: every bounce a step of the ODE
+    path, until the rebound falls below REST_SPEED and ``settle_spin`` ends the series."""
+
+    @property
+    def couples_spin(self):
+        return True
+
+    def coefficients(self, params):
+        return LAW.coefficients(params)
+
+    def reset(self, v, n, c):
+        return LAW.reset(v, n, c)
+
+    def rebound(self, v, n, c):
+        return LAW.rebound(v, n, c)
+
+    def settle(self, tangential, c):
+        return LAW.settle(tangential, c)
+
+    def impact(self, v, w, n, c):
+        return LAW.impact(v, w, n, c)
+
+    def settle_spin(self, tangential, w, n, c):
+        return LAW.settle_spin(tangential, w, n, c)
+
+
+def series_params(e, mu, **kw):
+    """A ball dropped on the table with spin about every axis: its first bounce slides,
+    and the series after it slides on for some bounces (mu = 0.01: three), to its end
+    (0.006) or throughout without friction (0)."""
+    return estim.Params(e, 1.0, R, (0.0, 0.0, 0.3), kw.pop("velocity", (0.05, -0.05, 0.0)),
+                        spin=kw.pop("spin", (5.0, 20.0, 30.0)), mu=mu, inertia=SHELL, **kw)
+
+
+def block_scene(tmp_path):
+    """``drop.xml`` with a block on the table (x from -0.3 to -0.1 m, 2 cm high), behind
+    the balls of ``series_params``, which move towards +x."""
+    xml = DROP.read_text().replace(
+        '<camera name="side"', '<geom name="block" type="box" pos="-0.2 0 0.01" size="0.1 0.5 0.01"/>\n    <camera name="side"')
+    path = tmp_path / "block.xml"
+    path.write_text(xml)
+    return estim.load_scene(path)
+
+
+def bounce_series(scene, params, t_end):
+    """The friction law's run of ``params`` on ``scene`` and the bounce-by-bounce one, at 64
+    times to t_end (one compiled program per law for every case)."""
+    ts = jnp.linspace(0.0, t_end, 64)
+    return tuple(estim.simulate(scene.with_law(law), params, t_end, ts=ts, max_events=256)
+                 for law in ("friction", BounceByBounceFrictionLaw()))
+
+
+@pytest.mark.parametrize(("e", "mu", "t_end"), [(0.8, 0.01, 4.0), (0.8, 0.006, 4.0), (0.8, 0.0, 4.0),
+                                                (0.8, 0.01, 1.5), (1.0, 0.01, 1.5)])
+def test_a_bounce_series_closes_in_closed_form(e, mu, t_end, tmp_path):
+    """The ODE path sums the bounce series on the table in one step (the law's closed form,
+    ``FrictionLaw.flight_start``, spin included), accumulating (t_end = 4 s) or cut
+    at t_end: its bounces, spin included, and the samples are those of the same law run
+    bounce by bounce, one step per flight, to rounding. Where the series slides to its end,
+    the bounce-by-bounce run settles (``settle_spin``) once its rebound falls below
+    REST_SPEED and the sum at the accumulation point, so their last positions differ by
+    the tail of flights shorter than that (below 1e-10 m here)."""
+    summed, stepped = bounce_series(block_scene(tmp_path), series_params(e, mu), t_end)
+    assert bool(summed.complete) and bool(stepped.complete)
+    kinds = np.asarray(summed.solution.steps.kind)
+    assert np.sum(kinds == STEP_ZENO) == 1
+    assert np.sum(kinds != STEP_UNUSED) < np.sum(np.asarray(stepped.solution.steps.kind) != STEP_UNUSED)
+    n = int(summed.events.count) - (1 if t_end > 2 else 0)  # (then the settle)
+    assert n >= 3 and int(stepped.events.count) >= n
+    for name in ("t", "position", "velocity_pre", "velocity_post", "spin_pre", "spin_post"):
+        np.testing.assert_allclose(getattr(summed.events, name)[:n], getattr(stepped.events, name)[:n],
+                                   rtol=0, atol=1e-11, err_msg=name)
+    np.testing.assert_allclose(summed.position, stepped.position, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(summed.velocity, stepped.velocity, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(summed.final.velocity, stepped.final.velocity, rtol=0, atol=1e-11)
+    # The slip |v_t - r w x n| after each listed bounce falls by the law's steps and, under
+    # friction, stops for good (mu = 0.01) or only at the settle (0.006).
+    v, w = np.asarray(summed.events.velocity_post[:n]), np.asarray(summed.events.spin_post[:n])
+    slip = np.linalg.norm(v[:, :2] - R * np.stack([w[:, 1], -w[:, 0]], axis=1), axis=1)
+    if mu == 0.01 and e < 1 and t_end > 2:
+        assert slip[0] > 0.2 and slip[3] > 0.04 and np.all(slip[5:] < 1e-12)
+    if mu == 0.006 and t_end > 2:
+        assert np.all(slip[:n] > 0.03) and float(summed.final.velocity[0]) == pytest.approx(
+            (v[-1, 0] + SHELL * R * w[-1, 1]) / (1 + SHELL), abs=1e-12)
+
+
+def test_a_series_that_would_meet_a_block_is_not_summed_through_it(tmp_path):
+    """A block on the table in the path of the bounces (0.1 m behind the ball, which moves
+    towards it): the series' triangle meets it (``slab_clear``), so the ODE path goes on
+    bounce by bounce, the ball hits the block's side, and every bounce is the
+    bounce-by-bounce run's."""
+    scene = block_scene(tmp_path)
+    summed, stepped = bounce_series(scene, series_params(0.8, 0.01, velocity=(-0.02, 0.0, 0.0), spin=(0.0, -5.0, 0.0)),
+                                    4.0)
+    faces = np.asarray(summed.events.face[: int(summed.events.count)])
+    assert any(scene.face_label(int(f))[0] == "block" for f in faces)
+    n = int(summed.events.count) - 1
+    for name in ("t", "position", "velocity_post", "spin_post"):
+        np.testing.assert_allclose(getattr(summed.events, name)[:n], getattr(stepped.events, name)[:n],
+                                   rtol=0, atol=1e-10, err_msg=name)
+
+
+def test_the_summed_series_derivatives_match_finite_differences_bounce_by_bounce(tmp_path):
+    """d(position at t = 1.452 s, in the fourth flight of the series, after its bounces
+    slide and then grip)/d(e, mu, spin, release velocity) of the summed series against
+    central differences of the bounce-by-bounce run (an independent path: steps, event
+    times by Newton's method, a reset per bounce)."""
+    scene = block_scene(tmp_path)
+    ts = jnp.linspace(0.0, 1.5, 64)
+
+    def position(law, theta):
+        p = series_params(theta[0], theta[1], spin=theta[2:5], velocity=(theta[5], theta[6], 0.0))
+        return estim.simulate(scene.with_law(law), p, 1.5, ts=ts, max_events=256).position[61]
+
+    theta = jnp.array([0.8, 0.01, 5.0, 20.0, 30.0, 0.05, -0.05])
+    jac = jax.jacfwd(lambda x: position("friction", x))(theta)
+    for i in range(theta.size):
+        d = 1e-6 * max(1.0, abs(float(theta[i])))
+        fd = (position(BounceByBounceFrictionLaw(), theta.at[i].add(d))
+              - position(BounceByBounceFrictionLaw(), theta.at[i].add(-d))) / (2 * d)
+        np.testing.assert_allclose(jac[:, i], fd, rtol=1e-5, atol=1e-7, err_msg=str(i))
+    assert float(jnp.abs(jac[0, 1])) > 1e-2  # (mu moves the ball)

@@ -670,6 +670,19 @@ def train_reach(faces: Faces, face, p, u, height):
     return jnp.where(obstacle <= POSITION_TOL, -1.0, jnp.maximum(reach, 0.0))
 
 
+def slab_clear(faces: Faces, face, lo, hi, height):
+    """Whether a bounce series on an upward face whose centre stays over the rectangle
+    ``lo[:2] .. hi[:2]`` and within ``height`` (its first apex) above its height on the
+    face, ``lo[2]``, meets no other solid: no other solid's box grown by r in every axis
+    has its interior in that slab (as ``train_reach``: a series that touches a grown box's
+    boundary never enters the solid)."""
+    solid = faces.row[face][SOLID]
+    zeta = lo[2]
+    overlap = ((faces.lo[:, 2] < zeta + height - POSITION_TOL) & (faces.hi[:, 2] > zeta + POSITION_TOL)
+               & jnp.all((faces.lo[:, :2] < hi[:2] - POSITION_TOL) & (faces.hi[:, :2] > lo[:2] + POSITION_TOL), axis=1))
+    return ~jnp.any(overlap & (jnp.arange(faces.lo.shape[0]) != solid))
+
+
 def sweep_clear(faces: Faces, p, v, a, h, margin):
     """Whether a ball whose centre stays within ``margin`` of the parabola
     ``p + v tau + a tau^2 / 2`` over ``0 <= tau <= h`` provably touches no solid then.

@@ -159,9 +159,9 @@ def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decis
         # t_end may be one that never ends (e = 1, n = inf: duration T0 * inf, whose derivative
         # w.r.t. T0 is inf and turned the discarded branch's zero cotangent into NaN in
         # reverse mode), so it is evaluated at a harmless n = 1 there.
-        duration, travel, v_full = law.series_end(s, jnp.where(at_end, 1.0, n_tr), c)
+        duration, travel, v_full, _ = law.series_end(s, jnp.where(at_end, 1.0, n_tr), c)
         tau_t = jnp.where(at_end, t_end - t, jnp.where(jnp.isfinite(duration), duration, 0.0))
-        tr_travel, tr_vel = law.state_at(s, tau_t, c, n_tr)
+        tr_travel, tr_vel, _ = law.state_at(s, tau_t, c, n_tr)
         return tau_t, p + jnp.where(at_end, tr_travel, travel), jnp.where(at_end, tr_vel, v_full), n_sup
 
     def no_train(_):
@@ -305,7 +305,7 @@ def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind
         up = jnp.array([0.0, 0.0, 1.0])
         n_sup = jnp.where(is_train, face_normal(faces, jnp.maximum(support, 0)), up)
         s = series(jnp.where(is_train, v, up), n_sup, a)
-        duration, _, _ = law.series_end(s, jnp.where(is_train, n, 1.0), c)
+        duration, *_ = law.series_end(s, jnp.where(is_train, n, 1.0), c)
         reason_t = jnp.where(t + duration >= t_end, END, jnp.where(jnp.isfinite(n), BOUNCES, SETTLE))
         return reason_t.astype(jnp.int32), jnp.int32(-1), jnp.float64(jnp.inf)
 

@@ -312,7 +312,7 @@ def sample(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, t, rolls: b
         is_train = inner(v0, normal) > 0
         normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
         s = series(jnp.where(is_train, v0, normal), normal, a)
-        return law.state_at(s, tau, c, n)
+        return law.state_at(s, tau, c, n)[:2]
 
     dp, v_tr = jax.vmap(in_train)(s.v0, s.normal, tau, n)
     is_train = (kind == TRAIN)[:, None]
@@ -369,7 +369,7 @@ def _bounce(v0, normal, t0, p0, j, law, c, g):
     is_train = inner(v0, normal) > 0
     normal = jnp.where(is_train, normal, jnp.array([0.0, 0.0, 1.0]))
     s = series(jnp.where(is_train, v0, normal), normal, jnp.array([0.0, 0.0, -1.0]) * g)
-    t, x, pre, post, (t_s, x_s, v_s) = law.bounce(s, j, c)
+    t, x, pre, post, _, _, (t_s, x_s, v_s) = law.bounce(s, j, c)
     return t0 + t, p0 + x, pre, post, (t0 + t_s, p0 + x_s, v_s)
 
 

@@ -8,21 +8,23 @@ and the sensitivities ask the law, never its name, and the native kernels run on
 laws they support (``estim.forward._native.supports``). A new law is one new file with
 one final class; nothing else changes.
 
-Two kinds, as diffrax has solvers with and without an error estimate:
+Three kinds, as diffrax has solvers with and without an error estimate:
 
 - :class:`AbstractContactLaw`: the reset at an impact (``reset``, with its normal speed
   ``rebound``) and the limit of a series of vanishing bounces (``settle``). Such a law
-  runs bounce by bounce: every bounce
-  is a segment of its own (compute bounded by ``max_segments``), and a ball comes to rest
-  where its rebound falls below ``REST_SPEED``.
-- :class:`AbstractSummableLaw`: a law whose bounce series on one face has a closed form
-  (flight j's start, the counts of bounces within a time or a distance). The planner then
-  sums a whole series in one segment, Zeno series included, and the ODE path closes Zeno
-  series the same way.
+  runs bounce by bounce: every bounce is a segment (a step on the ODE path) of its own
+  (compute bounded by ``max_segments``), and a ball comes to rest where its rebound falls
+  below ``REST_SPEED``.
+- :class:`AbstractSeriesLaw`: a law whose bounce series on one horizontal face have a
+  closed form (flight j's start, spin included, and the counts of bounces within a time).
+  The ODE path then closes a Zeno series in one step (``estim.forward._ode``).
+- :class:`AbstractSummableLaw`: a series law whose landings also move along one line (the
+  count of bounces within a distance). The closed-form planner then sums a whole series in
+  one segment, Zeno series included.
 
 Every method is a pure, differentiable function of JAX arrays: ``reset`` composes with
 the implicit-function derivative of the event time into the event-time sensitivities,
-and the series' closed forms are differentiated in the planner's replay. A law reads its
+and the series' closed forms are differentiated in the replays. A law reads its
 numbers from the ball's :class:`estim.Params` once (``coefficients``), and every other
 method takes that pytree ``c``: the dense solution keeps it per ball
 (``Trajectory.solution.coefficients``). A law's own fields are static settings (a law is
@@ -44,7 +46,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import Array, Bool, Float, PyTree
 
 from ...model._params import Params
 from .._constants import MAX_COUNT, REST_SPEED
@@ -134,9 +136,15 @@ class AbstractContactLaw(eqx.Module):
                      for s, b, o in zip(settled, bounced, (tangential, w), strict=True))
 
     @property
+    def closes_series(self) -> bool:
+        """Whether the law's bounce series on one face have a closed form in time
+        (:class:`AbstractSeriesLaw`); if not, the ODE path goes bounce by bounce."""
+        return isinstance(self, AbstractSeriesLaw)
+
+    @property
     def summable(self) -> bool:
-        """Whether the law's bounce series on one face have a closed form
-        (:class:`AbstractSummableLaw`); if not, the planner goes bounce by bounce."""
+        """Whether the closed-form planner sums the law's bounce series
+        (:class:`AbstractSummableLaw`); if not, it goes bounce by bounce."""
         return isinstance(self, AbstractSummableLaw)
 
 
@@ -144,8 +152,8 @@ class Series(NamedTuple):
     """A bounce series on one face, as it starts after a bounce: the face's unit normal,
     gravity split into its normal part ``a_n = a . n < 0`` (pressing the ball onto the
     face) and tangential part ``a_t``, the post-bounce normal speed ``w > 0`` and
-    tangential velocity ``u``, and the first flight's duration ``period = 2 w / |a_n|``.
-    Between bounces every flight is a parabola, whatever the law."""
+    tangential velocity ``u``, the first flight's duration ``period = 2 w / |a_n|``, and
+    the ball's spin. Between bounces every flight is a parabola, whatever the law."""
 
     normal: Float[Array, "3"]
     a_n: Float[Array, ""]
@@ -153,47 +161,50 @@ class Series(NamedTuple):
     w: Float[Array, ""]
     u: Float[Array, "3"]
     period: Float[Array, ""]
+    spin: Float[Array, "3"]
 
 
-def series(v, normal, a) -> Series:
-    """The series that starts with post-bounce velocity ``v`` on a face of normal ``normal``
-    under gravity ``a``."""
+def series(v, normal, a, spin=None) -> Series:
+    """The series that starts with post-bounce velocity ``v`` and spin ``spin`` (none: 0)
+    on a face of normal ``normal`` under gravity ``a``."""
     a_n = inner(a, normal)
     w = inner(v, normal)
-    return Series(normal, a_n, a - a_n * normal, w, v - w * normal, 2.0 * w / -a_n)
+    spin = jnp.zeros_like(v) if spin is None else spin
+    return Series(normal, a_n, a - a_n * normal, w, v - w * normal, 2.0 * w / -a_n, spin)
 
 
-class AbstractSummableLaw(AbstractContactLaw):
-    """A contact law whose bounce series on one face sum in closed form.
+class AbstractSeriesLaw(AbstractContactLaw):
+    """A contact law whose bounce series on one horizontal face have a closed form.
 
-    Implement ``flight_start`` (where flight j of a series begins), the three counts
-    ``bounces_within``, ``landings_within`` and ``flights_longer``, and ``accumulates``;
-    ``state_at``, ``series_end`` and ``bounce`` are built from them.
+    Implement ``flight_start`` (where flight j of a series begins, spin included), the
+    counts ``bounces_within`` and ``flights_longer``, and ``accumulates``; a law whose
+    series close only in some cases also ``sums``. ``flight_state``, ``state_at``,
+    ``series_end`` and ``bounce`` are built from them.
 
-    The planner relies on two properties of a summable law on a face that supports the
-    ball (checked for the factor law with 0 <= e, mu_t <= 1): no flight of a series is
-    longer or higher than the first (its flights stay in the slab of the first apex), and
-    on an upward face the landing points move monotonically along the first flight's
-    direction (so the first and last landings bound them all).
+    The ODE path (``estim.forward._ode``) relies on two properties of such a law on a
+    horizontal face that supports the ball: no flight of a series is longer or higher than
+    the first, and the tangential velocity moves monotonically along one segment from the
+    first flight's to that of the series' limit (``flight_start`` at j = inf, taken where the
+    series does not accumulate too), so that up to any flight the landings lie in the
+    triangle of the first flight's velocity and that flight's, which it can check.
     """
 
     @abc.abstractmethod
     def flight_start(self, s: Series, j: Float[Array, ""], c: PyTree):
-        """``(t, x, v)``: time offset, displacement and velocity at the start of flight j,
-        just after bounce j (j = 0: the series' start; j may be inf, the accumulation
-        point of a series that accumulates). Differentiable in s and c."""
+        """``(t, x, v, w)``: time offset, displacement, velocity and spin at the start of
+        flight j, just after bounce j (j = 0: the series' start; j may be inf, the
+        accumulation point of a series that accumulates). Differentiable in s and c."""
+
+    def sums(self, s: Series, c: PyTree) -> Bool[Array, ""]:
+        """Whether this series has the closed form (every series, unless the law says
+        otherwise)."""
+        return jnp.bool_(True)
 
     @abc.abstractmethod
     def bounces_within(self, y: Float[Array, ""], c: PyTree) -> Float[Array, ""]:
         """The largest whole n >= 0 such that the first n flights of a series last at most
         ``y`` first flights in all (``y = duration / s.period``; inf if every n does).
         Not differentiated: a count."""
-
-    @abc.abstractmethod
-    def landings_within(self, y: Float[Array, ""], c: PyTree) -> Float[Array, ""]:
-        """The largest whole n >= 0 such that, on a horizontal face, the first n flights
-        travel at most ``y`` times the first flight's travel ``|u| period`` along the
-        face (inf if every n does). Not differentiated."""
 
     @abc.abstractmethod
     def flights_longer(self, period: Float[Array, ""], shortest: float, c: PyTree) -> Float[Array, ""]:
@@ -206,32 +217,61 @@ class AbstractSummableLaw(AbstractContactLaw):
         """Whether a series on a face that supports the ball accumulates (infinitely many
         bounces in finite time, Zeno), e.g. e < 1."""
 
+    def flight_state(self, s: Series, j, tau, c: PyTree):
+        """Time offset, displacement, velocity and spin of the series at time ``tau`` after
+        it began, in flight j: flight j's start, then its parabola (``tau`` None: at the
+        flight's start; j = inf: the Zeno limit, whose normal speed is 0)."""
+        t_j, x_j, v_j, w_j = self.flight_start(s, j, c)
+        if tau is None:
+            t, displacement, velocity = t_j, x_j, v_j
+        else:
+            a = s.a_t + s.a_n * s.normal
+            dt = jnp.where(jnp.isfinite(j), tau - t_j, 0.0)
+            t, displacement, velocity = t_j + dt, x_j + v_j * dt + 0.5 * a * dt**2, v_j + a * dt
+        velocity = jnp.where(jnp.isfinite(j), velocity, velocity - inner(velocity, s.normal) * s.normal)
+        return t, displacement, velocity, w_j
+
     def state_at(self, s: Series, tau, c: PyTree, n_max):
-        """Displacement and velocity ``tau`` after the series began (at most n_max
-        bounces): flight j's start, then its parabola."""
+        """Displacement, velocity and spin ``tau`` after the series began (at most n_max
+        bounces)."""
         j = self.bounces_within(tau / s.period, c)
         j = jnp.minimum(jnp.minimum(j, n_max), MAX_COUNT)  # n_max may be inf
-        t_j, x_j, v_j = self.flight_start(s, j, c)
-        tau_j = tau - t_j
-        displacement = x_j + v_j * tau_j + 0.5 * (s.a_t + s.a_n * s.normal) * tau_j**2
-        return displacement, v_j + (s.a_t + s.a_n * s.normal) * tau_j
+        return self.flight_state(s, j, tau, c)[1:]
 
     def series_end(self, s: Series, n, c: PyTree):
-        """Duration, displacement and velocity after bounce n (n = inf: the Zeno limit,
-        where the normal speed is 0)."""
-        duration, displacement, velocity = self.flight_start(s, n, c)
-        finite = jnp.isfinite(n)
-        velocity = jnp.where(finite, velocity, velocity - inner(velocity, s.normal) * s.normal)
-        return duration, displacement, velocity
+        """Duration, displacement, velocity and spin after bounce n (n = inf: the Zeno
+        limit, where the normal speed is 0)."""
+        return self.flight_state(s, n, None, c)
 
     def bounce(self, s: Series, j, c: PyTree):
-        """Bounce j (from 1): time offset, displacement, velocity before and after, and the
-        start (time offset, displacement, velocity) of the flight that ends at it."""
-        t, x, post = self.flight_start(s, j, c)
-        t_s, x_s, v_s = self.flight_start(s, j - 1.0, c)
+        """Bounce j (from 1): time offset, displacement, velocity before and after, spin
+        before and after, and the start (time offset, displacement, velocity) of the flight
+        that ends at it."""
+        t, x, post, w_post = self.flight_start(s, j, c)
+        t_s, x_s, v_s, w_pre = self.flight_start(s, j - 1.0, c)
         tau = t - t_s
         pre = v_s + (s.a_t + s.a_n * s.normal) * tau
-        return t, x, pre, post, (t_s, x_s, v_s)
+        return t, x, pre, post, w_pre, w_post, (t_s, x_s, v_s)
+
+
+class AbstractSummableLaw(AbstractSeriesLaw):
+    """A series law whose landings on a face move along one line: the closed-form planner
+    (``estim.forward._solver``) sums its series.
+
+    Implement, besides :class:`AbstractSeriesLaw`'s methods, ``landings_within``.
+
+    The planner relies on two properties of a summable law on a face that supports the
+    ball (checked for the factor law with 0 <= e, mu_t <= 1): no flight of a series is
+    longer or higher than the first (its flights stay in the slab of the first apex), and
+    on an upward face the landing points move monotonically along the first flight's
+    direction (so the first and last landings bound them all).
+    """
+
+    @abc.abstractmethod
+    def landings_within(self, y: Float[Array, ""], c: PyTree) -> Float[Array, ""]:
+        """The largest whole n >= 0 such that, on a horizontal face, the first n flights
+        travel at most ``y`` times the first flight's travel ``|u| period`` along the
+        face (inf if every n does). Not differentiated."""
 
 
 @functools.cache

@@ -12,7 +12,7 @@ from ...model._params import Params
 from .._constants import SERIES_GAP
 from .._contact import inner
 from ._base import AbstractSummableLaw, Series
-from ._geometric import geometric_count, geometric_sum, safe_power
+from ._geometric import flights_at_least, geometric_count, geometric_sum, safe_power
 
 
 class FactorCoefficients(eqx.Module):
@@ -79,8 +79,9 @@ class FactorLaw(AbstractSummableLaw):
         return tangential * jnp.where(c.mu_t == 1.0, 1.0, 0.0)
 
     def flight_start(self, s: Series, j, c: FactorCoefficients):
-        """``(t_j, X_j, u_j + w e^j n)`` of the class docstring."""
-        return _flight_start(s, j, c.e, c.mu_t)
+        """``(t_j, X_j, u_j + w e^j n)`` of the class docstring, and the series' spin, which
+        this law leaves as it is."""
+        return (*_flight_start(s, j, c.e, c.mu_t), s.spin)
 
     def bounces_within(self, y, c: FactorCoefficients):
         """Flights last ``T0 e^j``: the largest n with ``G(e, n) <= y``."""
@@ -92,13 +93,8 @@ class FactorLaw(AbstractSummableLaw):
         return geometric_count(c.e * c.mu_t, y)
 
     def flights_longer(self, period, shortest, c: FactorCoefficients):
-        """Flight j lasts ``period e^j >= shortest`` for ``j <= log(shortest / period) /
-        log(e)``; every flight for e = 1, none for e = 0."""
-        e = c.e
-        le = jnp.log(jnp.where((e > 0) & (e < 1), e, 0.5))
-        ratio = jnp.log(shortest / period)
-        listable = jnp.where(period >= shortest, jnp.floor(ratio / le) + 1.0, 0.0)
-        return jnp.where((e > 0) & (e < 1), listable, jnp.where(e == 0, 0.0, jnp.inf))
+        """Flight j lasts ``period e^j``: ``flights_at_least``."""
+        return flights_at_least(c.e, period, shortest)
 
     def accumulates(self, c: FactorCoefficients):
         return c.e < 1

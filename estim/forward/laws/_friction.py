@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ...model._params import Params
 from .._contact import inner
-from ._base import AbstractContactLaw
+from ._base import AbstractSeriesLaw, Series
+from ._geometric import flights_at_least, geometric_count, geometric_sum, safe_power
 
 # The impact speed at which ``e`` is the restitution when it depends on the speed (m/s):
 # that of the ITTF's drop test (rule 2.1.3: dropped from 30.5 cm, sqrt(2 g 0.305)), so that
@@ -34,7 +36,7 @@ class FrictionCoefficients(eqx.Module):
         return jnp.clip(self.e + self.e_slope * (-vn - E_REFERENCE_SPEED), 0.0, 1.0)
 
 
-class FrictionLaw(AbstractContactLaw):
+class FrictionLaw(AbstractSeriesLaw):
     r"""A ball of radius r, mass m and moment of inertia ``I = alpha m r^2`` hits a rigid face
     of unit outward normal n with velocity v and spin (angular velocity) w. The face acts
     through one impulse ``J = J_n n + J_t`` at the contact point, ``-r n`` from the centre;
@@ -82,8 +84,45 @@ class FrictionLaw(AbstractContactLaw):
     slip, whatever mu > 0): ``v = (v_t + alpha r w x n) / (1 + alpha)`` (``settle_spin``; for
     mu = 0 nothing changes).
 
+    *Bounce series* (``AbstractSeriesLaw``). On a horizontal face (no tangential gravity)
+    with one e (``e_slope`` = 0) a series has a closed form. After a bounce the normal speed
+    is w > 0 and flight j lasts ``T0 e^j`` (``T0 = 2 w / g``), as under the factor law. In
+    flight neither the tangential velocity nor the spin changes, so neither does the slip
+    s; bounce k (k >= 1), whose normal speed is ``w e^(k-1)``, reduces |s| along its own
+    direction by ``(1 + 1/alpha) mu (1 + e) w e^(k-1) = C e^(k-1)`` while that is less than
+    |s| (it slides) and stops it otherwise (it grips; the ball leaves rolling, and every
+    later impact has zero slip and no tangential impulse: it rolls on). With ``sigma =
+    |s|`` and ``G(e, k) = (1 - e^k) / (1 - e)``, the bounces 1..m slide, where m is the
+    largest whole number with ``C G(e, m) <= sigma``, and bounce m + 1 grips (the slip
+    decays geometrically: ``sigma - C G(e, k)``). After bounce j the slip has fallen by
+
+        D_j = min(C G(e, j), sigma) s / sigma                                          (2)
+
+    (D_j = s once gripped), and by (1) the velocity and spin have moved with it:
+
+        u_j = u - alpha / (1 + alpha) D_j,      w_j = w + n x D_j / ((1 + alpha) r).
+
+    Flight i travels ``T0 e^i u_i``; with ``q = min(j, m + 1)`` (the flights before the
+    grip) and ``sum_{i<q} e^i G(e, i) = e G(e, q) G(e, q - 1) / (1 + e)`` (from
+    ``G(e^2, q) = G(e, q) (1 + e^q) / (1 + e)``), flight j starts at
+
+        t_j = T0 G(e, j),
+        X_j = T0 [u G(e, j) - alpha / (1 + alpha) (C e G(e, q) G(e, q - 1) / (1 + e) s / sigma
+                                                    + (G(e, j) - G(e, q)) s)].
+
+    For e < 1 the series accumulates at ``T0 / (1 - e)``; its limit (j = inf) is the
+    ball rolling as ``settle_spin`` leaves it, ``D_inf = s`` (for mu > 0), whether or not
+    the bounces gripped first (a ball still sliding when its bounces die out is stopped by
+    friction in the contact that follows, ``settle_spin``). Every u_j lies on the segment
+    from u to ``u_inf``, as ``AbstractSeriesLaw`` requires. On an inclined face, or with
+    ``e_slope`` != 0, the flights change the slip or the ratio of successive flights is not
+    e: such a series goes bounce by bounce (``sums``). So does every series in air, where the
+    ODE path sums only the factor law's (``estim.forward._ode._sums_series``).
+
     This law changes the spin, so it runs where the spin is carried from contact to contact:
-    on the ODE path (``estim.forward._ode``), which ``estim.simulate`` takes for it.
+    on the ODE path (``estim.forward._ode``), which ``estim.simulate`` takes for it. Its
+    landings do not move along one line (the slip turns the velocity), so it is not an
+    ``AbstractSummableLaw``: the closed-form planner does not sum its series.
     """
 
     @property
@@ -136,3 +175,47 @@ class FrictionLaw(AbstractContactLaw):
         rolling_w = jnp.cross(n, rolling_v) / c.radius + inner(w, n) * n
         grips = c.mu > 0
         return jnp.where(grips, rolling_v, tangential), jnp.where(grips, rolling_w, w)
+
+    def sums(self, s: Series, c: FrictionCoefficients):
+        """A series on a horizontal face (``a_t = 0``) with one e (``e_slope = 0``)."""
+        return (inner(s.a_t, s.a_t) == 0.0) & (c.e_slope == 0.0)
+
+    def flight_start(self, s: Series, j, c: FrictionCoefficients):
+        """``(t_j, X_j, u_j + w e^j n, w_j)`` of the class docstring."""
+        e, n = c.e, s.normal
+        slip = s.u - c.radius * jnp.cross(s.spin, n)
+        s2 = inner(slip, slip)
+        sigma = jnp.sqrt(jnp.where(s2 > 0, s2, 1.0))  # (double where: finite derivative at 0 slip)
+        unit = jnp.where(s2 > 0, slip / sigma, 0.0)
+        big_c = (1.0 + 1.0 / c.inertia) * c.mu * (1.0 + e) * s.w
+        # m, the last bounce that slides (inf: every bounce, mu = 0 included; 0 at zero slip).
+        y = jnp.where(s2 > 0, jnp.where(big_c > 0, sigma / jnp.where(big_c > 0, big_c, 1.0), jnp.inf), 0.0)
+        m = geometric_count(e, jax.lax.stop_gradient(y))
+        g_j = geometric_sum(e, j)
+        t = s.period * g_j
+        finite = jnp.isfinite(t)  # false only for e = 1, j = inf: never reached
+        g_j = jnp.where(finite, g_j, 0.0)
+        limit = jnp.isinf(j)
+        # (2): the slip's fall; in the limit the ball rolls (settle_spin).
+        reduction = jnp.where(limit, jnp.where(c.mu > 0, slip, 0.0), jnp.where(j <= m, big_c * g_j * unit, slip))
+        q = jnp.where(finite, jnp.minimum(j, m + 1.0), 0.0)  # the flights before the grip
+        g_q = geometric_sum(e, q)
+        sliding = big_c * e * g_q * geometric_sum(e, jnp.maximum(q - 1.0, 0.0)) / (1.0 + e) * unit
+        # (G(e, j) - G(e, q) is 0 where q = j, inf - inf for an endless slide at j = inf.)
+        gripped = jnp.where(q < j, g_j - g_q, 0.0) * slip
+        beta = c.inertia / (1.0 + c.inertia)
+        displacement = s.period * (s.u * g_j - beta * (sliding + gripped))
+        velocity = s.u - beta * reduction + s.w * safe_power(e, j) * n
+        spin = s.spin + jnp.cross(n, reduction) / ((1.0 + c.inertia) * c.radius)
+        return t, displacement, velocity, spin
+
+    def bounces_within(self, y, c: FrictionCoefficients):
+        """Flights last ``T0 e^j``: the largest n with ``G(e, n) <= y``."""
+        return geometric_count(c.e, y)
+
+    def flights_longer(self, period, shortest, c: FrictionCoefficients):
+        """Flight j lasts ``period e^j``: ``flights_at_least``."""
+        return flights_at_least(c.e, period, shortest)
+
+    def accumulates(self, c: FrictionCoefficients):
+        return c.e < 1

@@ -1,5 +1,5 @@
 """Geometric sums and counts, accurate and differentiable at the ends of their range: the
-arithmetic of bounce series (``estim.forward.laws.FactorLaw``)."""
+arithmetic of bounce series (``estim.forward.laws.FactorLaw``, ``FrictionLaw``)."""
 
 from __future__ import annotations
 
@@ -60,3 +60,13 @@ def safe_power(x, n):
     rest = jnp.where(x_pos, x_safe ** (n_safe - 1.0), jnp.where(n_safe == 1.0, 1.0, 0.0))
     at_inf = jnp.where(x == 1.0, 1.0, 0.0)
     return jnp.where(whole, x * rest, jnp.where(finite, 1.0, at_inf))
+
+
+def flights_at_least(e, period, shortest):
+    """How many flights of a series whose flight j lasts ``period e^j`` last at least
+    ``shortest``: those with ``j <= log(shortest / period) / log(e)``; every flight for
+    e = 1, none for e = 0. Not differentiated."""
+    le = jnp.log(jnp.where((e > 0) & (e < 1), e, 0.5))
+    ratio = jnp.log(shortest / period)
+    listable = jnp.where(period >= shortest, jnp.floor(ratio / le) + 1.0, 0.0)
+    return jnp.where((e > 0) & (e < 1), listable, jnp.where(e == 0, 0.0, jnp.inf))
