@@ -34,15 +34,14 @@ found without ever stepping over one:
 
 Zeno series carry over (for a contact law whose series have a closed form,
 ``estim.forward.laws.AbstractSeriesLaw``, where the law ``sums`` them, and in air only a
-summable law's, ``_sums_series``; any other goes bounce by bounce): after a bounce on a face that supports the ball, if the rest of the
-bounce series (gravity only) lasts less than ``sqrt(2 SLACK / |a_air|)`` (so neglecting
-the air over it moves the ball by less than ``SLACK``; a_air the larger of the air's
-acceleration at the series' start and at its end), lands on the same face and meets no
-other solid (the slab test ``train_reach`` along the landings' line for a summable law,
-``slab_clear`` over the triangle that holds them for the friction law, whose landings
-turn with the slip), it is summed in closed form (the law's, spin included) and
-the ball rests or slides on the face (with the air acting along it); it flies again when
-it slides off an edge. A series still bouncing at ``t_end`` (always so for e = 1) is summed
+summable law's, ``_sums_series``; any other goes bounce by bounce): after a bounce on a
+face that supports the ball, if the rest of the bounce series (gravity only) lasts less
+than ``sqrt(2 SLACK / |a_air|)`` (so neglecting the air over it moves the ball by less
+than ``SLACK``), lands on the same face and meets no other solid (the slab test
+``train_reach`` along the landings' line for a summable law, ``slab_clear`` over the
+triangle that holds them for the friction law, whose landings turn with the slip), it is
+summed in closed form (the law's, spin included) and the ball rests or slides on the face
+(with the air acting along it); it flies again when it slides off an edge. A series still bouncing at ``t_end`` (always so for e = 1) is summed
 up to ``t_end`` under the same conditions. In a vacuum (the ODE path forced on a
 gravity-only scene) every such series is summed, as in the closed-form solver, and its
 bounces are listed as events as there (those whose flight lasts at least 1 us, then a
@@ -493,13 +492,13 @@ def _zeno(faces: Faces, gravity, air, law: AbstractContactLaw, params, face, p, 
     duration = jnp.where(cut, t_left, jnp.where(jnp.isfinite(duration), duration, 0.0))
     ok = supports & law.sums(s, c) & _zeno_allowed(
         law, *jax.lax.stop_gradient((faces, gravity, air, params, c, f, n, p, v, w_n, s, duration, travel, v_end,
-                                     w_end, slack))
+                                     slack))
     )
     return (ok, cut, jnp.where(ok, duration, 0.0), jnp.where(ok, travel, 0.0),
             jnp.where(ok, v_end, v), jnp.where(ok, w_end, w))
 
 
-def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duration, travel, v_end, w_end, slack):
+def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duration, travel, v_end, slack):
     """The decision of ``_zeno`` (no gradients): the series lands on its face, meets no
     other solid, and is short enough to neglect the air over it."""
     row = faces.row[f]
@@ -533,16 +532,10 @@ def _zeno_allowed(law, faces, gravity, air, params, c, f, n, p, v, w, s, duratio
         corners = jnp.stack([p, p + duration * s.u, p + duration * u_end])
         lands = jnp.all(on_face(corners, row[CENTRE], row[HALF], faces.radius))
         clear = slab_clear(faces, f, jnp.min(corners, axis=0), jnp.max(corners, axis=0), apex)
-    # The air's acceleration, at the series' start and at its end (its speed and spin
-    # move from the one to the other).
     g_vec = jnp.array([0.0, 0.0, -1.0]) * gravity
-
-    def a_air(v, spin):
-        return acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, spin, v,
-                            params.lift_factor) - g_vec
-
-    short = duration <= jnp.minimum(_zeno_time(a_air(v, s.spin), slack), _zeno_time(a_air(v_end, w_end), slack))
-    return short & lands & clear
+    a_air = acceleration(air, gravity, params.radius, params.mass, params.drag_coefficient, s.spin, v,
+                         params.lift_factor) - g_vec
+    return (duration <= _zeno_time(a_air, slack)) & lands & clear
 
 
 def _zeno_time(a_air, slack):
