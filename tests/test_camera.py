@@ -158,3 +158,28 @@ def test_a_camera_file_that_does_not_parse_names_the_problem(tmp_path, text, mes
 def test_a_missing_camera_file():
     with pytest.raises(FileNotFoundError, match="camera file not found"):
         read_camera("/nonexistent/cam.yml")
+
+
+def test_the_bench_camera_shot(tmp_path):
+    # `estim bench fit`'s one-camera shot (estim.app._bench.camera_shot) is what its table
+    # says: 15 frames at 25 fps, the camera file read back as OpenCV's camera, the pixels
+    # OpenCV's projection of the shot (its true path) plus 2 px of noise, one bounce in view
+    # (the centre one radius above the table's top, z = 0).
+    from estim.app._bench import CAMERA_SHOT, _shot_path, camera_shot
+    from estim.tracks._image import read_image_tracks_csv
+
+    track, camera_path = camera_shot(str(tmp_path))
+    cam = read_camera(camera_path)
+    seen = read_image_tracks_csv(track, [cam])
+    t, uv = seen.t["pingpong"], seen.uv["pingpong"]
+    np.testing.assert_allclose(t, np.arange(15) / CAMERA_SHOT["fps"], atol=1e-6)
+    fine = np.linspace(0.0, t[-1], 601)
+    _, path = _shot_path(np.concatenate([t, fine]))
+    truth, fine = path[: t.size], path[t.size:]
+    expected, _ = cv2.projectPoints(truth, cam.rvec, np.asarray(cam.translation), np.asarray(cam.matrix),
+                                    np.asarray(cam.distortion))
+    noise = uv - expected[:, 0]
+    assert abs(np.std(noise) - CAMERA_SHOT["noise_px"]) < 0.5 and np.abs(noise.mean(axis=0)).max() < 1.5
+    low = np.flatnonzero((fine[1:-1, 2] < fine[:-2, 2]) & (fine[1:-1, 2] <= fine[2:, 2])) + 1
+    assert low.size == 1 and abs(fine[low[0], 2] - 0.02) < 3e-3  # (the grid's 1 ms at about 2.5 m/s)
+    assert 0.0 < fine[low[0], 1] < 1.37 and np.all(np.abs(fine[:, 0]) < 0.7625)  # on the table's far half

@@ -46,7 +46,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..forward._balls import inside
-from ..model._air import air_acceleration, spin_for_lift
+from ..model._air import air_acceleration_compiled, spin_for_lift
 from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
 from ..tracks._camera import CameraArrays
@@ -210,7 +210,7 @@ def start_values(rec, scene: Scene, ball: str) -> dict[str, float]:
         end = rec.bounces[0] if rec.bounces else float(rec.t.max())
         middle = 0.5 * (rec.refs[0] + end)
         v = rec.velocity(middle, 0)
-        drag = np.asarray(air_acceleration(scene.air, spec.radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
+        drag = np.asarray(air_acceleration_compiled(scene.air, spec.radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
         spin = spin_for_lift(scene.air, spec.radius, spec.mass, v, rec.flights[0, 2] - drag)
         out.update(zip(("spin_x", "spin_y", "spin_z"), map(float, np.clip(spin, -SPIN_START, SPIN_START)),
                        strict=True))

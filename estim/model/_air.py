@@ -50,6 +50,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -128,6 +129,12 @@ def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity, l
     kappa = lift_ratio(radius, inner(spin, spin), speed)
     magnus = (lift_factor * air.density * area * radius / (2.0 * mass)) * kappa * jnp.cross(spin, w)
     return quad + lin + magnus
+
+
+# For NumPy callers (the starts read off a track): compiled once per process. Called eagerly,
+# each call dispatched its thirty-odd JAX operations one by one, and the first compiled each
+# of them (about 0.3 s of a camera fit's first call; 0.2 s of a compiled one's 0.46 s).
+air_acceleration_compiled = jax.jit(air_acceleration)
 
 
 def acceleration(air: Air | None, gravity, radius, mass, drag_coefficient, spin, velocity, lift_factor=1.0):

@@ -44,6 +44,7 @@ import os
 import re
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -187,8 +188,9 @@ class Camera(eqx.Module):
         return p @ np.asarray(self.rotation)[2] + float(self.translation[2])
 
     def project(self, points: Float[Array, "*batch 3"]) -> Float[Array, "*batch 2"]:
-        """Pixels ``(u, v)`` of world points (module docstring); JAX, differentiable."""
-        return project(self.matrix, self.distortion, self.rotation, self.translation, points)
+        """Pixels ``(u, v)`` of world points (module docstring); JAX, differentiable
+        (compiled: called eagerly, as the plots do, its operations would each compile)."""
+        return _project_compiled(self.matrix, self.distortion, self.rotation, self.translation, points)
 
     def normalised(self, uv) -> np.ndarray:
         """The undistorted normalised image coordinates ``(x', y')`` of pixels ``(..., 2)``
@@ -262,6 +264,9 @@ def project(matrix, distortion, rotation, translation, points):
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return jnp.stack([matrix[..., 0, 0] * xd + matrix[..., 0, 2], matrix[..., 1, 1] * yd + matrix[..., 1, 2]],
                      axis=-1)
+
+
+_project_compiled = jax.jit(project)
 
 
 # ------------------------------------------------------------------------------- files

@@ -48,21 +48,15 @@ import itertools
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import jax
 import numpy as np
 
-from ..model._air import air_acceleration
+from ..model._air import air_acceleration_compiled
 from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
 from ._flights import flight_contacts
 from ._image import ImageTracks
 
 __all__ = ["Reconstruction", "reconstruct", "reconstructions", "surface_height"]
-
-# The air's acceleration, compiled once per process: a start evaluates the drag hundreds of
-# times, and each eager call dispatched its thirty-odd JAX operations one by one (about
-# 0.2 s of a camera fit's 0.46 s).
-_air_acceleration = jax.jit(air_acceleration)
 
 # Weight of a meeting of two flights and of a bounce on a surface, against one sample's
 # ray (both in units of angle: metres over the distance from the camera).
@@ -220,7 +214,7 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
         spec = scene.ball(ball)
 
         def drag(v):
-            return np.asarray(_air_acceleration(scene.air, radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
+            return np.asarray(air_acceleration_compiled(scene.air, radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
 
     rays = _Rays(tracks, ball, np.array([0.0, 0.0, -float(scene.gravity)]), drag)
     surfaces = _surfaces(scene, radius)
