@@ -219,6 +219,38 @@ def test_cli_fits_files_together(tmp_path, capsys):
         assert (out / name).read_bytes().startswith(PNG)
 
 
+REALDATA = ROOT.parent / "shared" / "realdata" / "pingpong_drop_nicofighter45"
+
+
+def test_a_clip_that_cannot_be_placed_in_metres_is_left_out_and_named(capsys):
+    """Four real racket drops, two of which have no motion a pixel fit can place in metres:
+    racket 0 never moves (the ball held still), racket 4 ends five frames after its bounce
+    (too few to fit the flight that meets the fall at the surface's row). They are left out
+    and named, with why, and the other two are fitted as if given alone."""
+    racket = [REALDATA / "racket" / f"tracked-{k}.txt" for k in (0, 4, 9, 12)]
+    if not all(f.is_file() for f in racket):
+        pytest.skip(f"real data not found at {REALDATA}")
+    rows = [np.loadtxt(f, delimiter=";", usecols=(1,)) for f in racket[:2]]
+    assert np.ptp(rows[0]) < 2.0  # px: no motion
+    assert rows[1].size - 1 - np.argmax(rows[1]) < 8  # samples after the bounce: fewer than a flight needs
+    pixels = ["--pixels", "--frame-interval", "0.01", "--ball", "pingpong"]
+    code = main(["fit", *map(str, racket), "--scene", DROP, *pixels, "--shared", "e", "--json"])
+    captured = capsys.readouterr()
+    assert code in (0, 1), captured.err
+    payload = json.loads(captured.out)
+    assert set(payload["left_out"]) == {"tracked-0", "tracked-4"}
+    assert "no flight" in payload["left_out"]["tracked-0"]
+    assert "no bounce with fitted flights on both sides" in payload["left_out"]["tracked-4"]
+    assert "left out tracked-4" in captured.err
+    assert set(payload["clips"]) == {"tracked-9", "tracked-12"}
+    alone, _ = estim.fit_files(racket[2:], DROP, shared=("e",), pixels=True, ball="pingpong", frame_interval=0.01)
+    assert alone.left_out == {}
+    assert payload["shared"]["e"] == pytest.approx(alone.shared["pingpong"].values["e"], abs=1e-12)
+    # Nothing left to share: the error names what was left out and why.
+    _fails(["fit", *map(str, racket[:2]), str(racket[2]), "--scene", DROP, *pixels, "--shared", "e"], capsys,
+           "only one clip", "left out: tracked-0")
+
+
 def _fails(argv, capsys, *words):
     code = main(argv)
     err = capsys.readouterr().err

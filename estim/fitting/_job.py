@@ -9,7 +9,7 @@ import numpy as np
 
 from ..model._scene import Scene, load_scene
 from ..tracks._camera import read_camera
-from ..tracks._csv import Tracks, read_tracks_csv
+from ..tracks._csv import Tracks, TracksError, read_tracks_csv
 from ..tracks._exports import read_kinovea, read_tracker
 from ..tracks._image import read_image_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
@@ -213,21 +213,35 @@ def _surface_height(scene: Scene) -> float:
 
 def clips_from_files(paths, scene: Scene, *, pixels: bool = False, ball: str | None = None,
                      frame_interval: float | None = None, metres_per_pixel: float | None = None,
-                     from_bounce: int = 0, say=None) -> list[Clip]:
+                     from_bounce: int = 0, say=None) -> tuple[list[Clip], dict[str, str]]:
     """The clips of several files: with ``pixels`` each file is one clip of ``ball``
     (:func:`read_pixel_clip`, its own scale and surface row), else each ball of each tracks
     CSV is one clip. Labels are the file names without extension (and ``/ball`` where a
-    file has several balls); the full path where two files share a name."""
+    file has several balls); the full path where two files share a name.
+
+    Returns the clips and those left out, ``label -> why``: a pixel track whose motion
+    cannot be placed in metres (no flight to read the scale from, no bounce between two
+    fitted flights to read the surface row from, fewer bounces than ``from_bounce``) is left
+    out, named (``say``) and reported, so that one such clip does not stop the fit of the
+    others. A file that does not parse is an error, as for one file."""
     paths = [os.fspath(p) for p in paths]
     stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
     if len(set(paths)) != len(paths):
         raise ValueError(f"a file is given twice: {sorted({p for p in paths if paths.count(p) > 1})}")
     names = stems if len(set(stems)) == len(stems) else paths
-    clips = []
+    clips, left_out = [], {}
     for path, name in zip(paths, names, strict=True):
         if pixels:
-            pc = read_pixel_clip(path, scene, ball=ball, frame_interval=frame_interval,
-                                 metres_per_pixel=metres_per_pixel, from_bounce=from_bounce, say=say)
+            try:
+                pc = read_pixel_clip(path, scene, ball=ball, frame_interval=frame_interval,
+                                     metres_per_pixel=metres_per_pixel, from_bounce=from_bounce, say=say)
+            except TracksError:
+                raise
+            except ValueError as err:
+                left_out[name] = str(err).removeprefix(f"{path}: ")
+                if say:
+                    say(f"left out {name}: {left_out[name]}")
+                continue
             clips.append(Clip(label=name, ball=ball, t=pc.t, position=pc.position, fixed=pc.fixed, source=path,
                               anchor=pc.anchor,
                               extra={"metres_per_pixel": pc.metres_per_pixel, "surface_row_px": pc.surface_row,
@@ -237,7 +251,7 @@ def clips_from_files(paths, scene: Scene, *, pixels: bool = False, ball: str | N
             for b in tracks.balls:
                 label = name if len(tracks.balls) == 1 else f"{name}/{b}"
                 clips.append(Clip(label=label, ball=b, t=tracks.t[b], position=tracks.position[b], source=path))
-    return clips
+    return clips, left_out
 
 
 def fit_files(paths, scene: Scene | str, *, shared, pixels: bool = False, ball: str | None = None,
@@ -252,13 +266,17 @@ def fit_files(paths, scene: Scene | str, *, shared, pixels: bool = False, ball: 
             :func:`fit_clips` refuse.
     """
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
-    clips = clips_from_files(paths, scene, pixels=pixels, ball=ball, frame_interval=frame_interval,
-                             metres_per_pixel=metres_per_pixel, from_bounce=from_bounce, say=say)
+    clips, left_out = clips_from_files(paths, scene, pixels=pixels, ball=ball, frame_interval=frame_interval,
+                                       metres_per_pixel=metres_per_pixel, from_bounce=from_bounce, say=say)
+    why = "".join(f"; left out: {k}: {v}" for k, v in left_out.items())
+    if not clips:
+        raise ValueError("no clip could be fitted" + why)
     seen = [c.ball for c in clips]
     alone = sorted({b for b in seen if seen.count(b) == 1})
     if alone:
         raise ValueError(f"ball(s) {alone} appear in only one clip: shared parameters need a ball "
-                         "in at least two clips")
+                         "in at least two clips" + why)
     free = options.pop("free", registry.side_view_free(scene) if pixels else None)
     result = fit_clips(scene, clips, shared=shared, free=free, progress=say, **options)
+    result.left_out = left_out
     return result, {c.label: (c.t, c.position) for c in clips}

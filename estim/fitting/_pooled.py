@@ -190,6 +190,7 @@ class PooledResult:
     clips: FitResult
     individual: FitResult
     units: list[Clip]
+    left_out: dict[str, str] = field(default_factory=dict)  # clip label -> why it could not be fitted
 
     @property
     def converged(self) -> bool:
@@ -197,7 +198,8 @@ class PooledResult:
 
     def to_json(self) -> dict:
         """``shared`` (flat for one ball, else per ball), ``clips`` (per unit what a single
-        fit gives, with its source and extra), ``individual`` (the one-by-one fits)."""
+        fit gives, with its source and extra), ``individual`` (the one-by-one fits),
+        ``left_out`` (clips given but not fitted: label -> why)."""
         shared = {b: s.to_json() for b, s in self.shared.items()}
         clips = {}
         for u in self.units:
@@ -208,6 +210,7 @@ class PooledResult:
             "shared": next(iter(shared.values())) if len(shared) == 1 else shared,
             "clips": clips,
             "individual": {k: v.to_json() for k, v in self.individual.balls.items()},
+            "left_out": dict(self.left_out),
         }
 
     def format_table(self) -> str:
@@ -238,6 +241,7 @@ class PooledResult:
             for label in sf.clips:
                 bf = self.clips.balls[label]
                 rows.extend(f"  {label}: {m['advice_note']}" for m in bf.missing_physics if m.get("advice_note"))
+        rows.extend(f"left out: {label}: {why}" for label, why in self.left_out.items())
         return "\n".join(rows)
 
 
