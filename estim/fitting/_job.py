@@ -15,17 +15,42 @@ from ..tracks._image import read_image_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
 from . import _registry as registry
 from ._fit import fit
+from ._hits import hits, longest_stretch
 from ._image import fit_image
 from ._initial import initial_guess, split_flights
 from ._pooled import Clip, fit_clips
 
 
 def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
-    """Fit a tracks CSV: returns (result, data) with data ``ball -> (t, position)``."""
+    """Fit a tracks CSV: returns (result, data) with data ``ball -> (t, position)``, what
+    was fitted. A track that something the scene does not have hits (a racket, a hand:
+    ``estim.fitting._hits``) is fitted on its longest stretch between hits, released at
+    that stretch's first sample (``t0``, unless ``fixed`` holds it), with a note that says
+    where it was cut and how many samples were left out."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     tracks = read_tracks_csv(tracks_path, scene=scene)
-    data = {b: (tracks.t[b], tracks.position[b]) for b in tracks.balls}
-    result = fit(scene, data, progress=say, **options)
+    data, notes = {}, {}
+    fixed = {b: dict(v) for b, v in (options.pop("fixed", None) or {}).items()}
+    for b in tracks.balls:
+        t, pos = tracks.t[b], tracks.position[b]
+        spec = scene.ball(b)
+        found = hits(t, pos, scene, spec.radius, spec.position[1])
+        if found:
+            start, stop = longest_stretch(t.size, found)
+            where = ", ".join(f"{jump:.1f} m/s at t = {tc:.3f} s" for _, tc, jump in found)
+            notes[b] = (f"the velocity jumps far from every solid of the scene ({where}): something the scene "
+                        f"does not have hit the ball (a racket, a hand); only t = {t[start]:.3f} to "
+                        f"{t[stop - 1]:.3f} s is fitted, the longest stretch between hits "
+                        f"({t.size - (stop - start)} of {t.size} samples left out)")
+            if say:
+                say(f"{b}: {notes[b]}")
+            if start > 0:
+                fixed.setdefault(b, {}).setdefault("t0", float(t[start]))
+            t, pos = t[start:stop], pos[start:stop]
+        data[b] = (t, pos)
+    result = fit(scene, data, progress=say, fixed=fixed or None, **options)
+    for b, note in notes.items():
+        result.balls[b].notes.insert(0, note)
     result.source = os.fspath(tracks_path)
     return result, data
 

@@ -1,0 +1,103 @@
+"""Hits: where something the scene does not have strikes the tracked ball.
+
+A tracked shot often runs past its own end (the opponent's racket returns the ball, a hand
+catches it) or starts before it (a serve's toss). At such a hit the ball's velocity jumps
+far from every solid of the scene, and no motion of the scene's ball explains the samples
+on both sides of it: a fit of the whole track bends its flights, its bounce and its spin
+towards samples it cannot reach. ``estim fit`` (``estim.fitting._job.fit_csv``) fits the
+longest stretch of the track between hits and says where it cut.
+
+**Detection** (NumPy, before any fit). With gravity known, ``w = z + g t^2 / 2`` and the
+horizontal coordinates are straight lines in a flight in vacuum; in air they bend by the
+drag and Magnus accelerations, which change the velocity by ``a dt`` per frame, smoothly.
+At every sample i, straight lines fitted by least squares to the ``WINDOW`` samples before
+i and to those from i on give the mean velocity on each side; their difference ``dv`` is
+the jump at i (plus what the air changes over a window, a fraction of a metre per second
+for a ping-pong ball at 180 Hz). A jump is a hit where it exceeds ``HIT_SPEED`` and
+``HIT_FRACTION`` of the speed before it, and where the ball (both lines carried to the
+middle of the two windows, averaged) is further than ``CLEARANCE`` beyond its radius from
+every solid (``estim.forward._balls.inside``): at a bounce, the ball touches one. Tracks
+sampled below ``MIN_RATE`` are not searched (a window then spans most of a flight).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..forward._balls import inside
+from ..model._scene import Scene
+
+__all__ = ["HIT_SPEED", "HIT_FRACTION", "CLEARANCE", "WINDOW", "MIN_RATE", "hits", "longest_stretch"]
+
+WINDOW = 6  # samples on each side of a candidate
+HIT_SPEED = 1.5  # m/s: a jump no air force makes over two windows of frames
+HIT_FRACTION = 0.3  # of the speed before the jump (a fast ball's drag over the windows stays below)
+CLEARANCE = 0.03  # m beyond the radius: further from every solid than a bounce's contact
+MIN_RATE = 60.0  # samples per second
+
+
+def _velocity(t, y):
+    """Least-squares slope of the columns of ``y (n, k)`` against ``t (n,)``, and the line's
+    value at the mean time."""
+    tm = t.mean()
+    dt = t - tm
+    slope = dt @ (y - y.mean(axis=0)) / (dt @ dt)
+    return slope, y.mean(axis=0), tm
+
+
+def hits(t, position, scene: Scene, radius: float, y_default: float = 0.0) -> list[tuple[int, float, float]]:
+    """The hits of one track: ``(index of the first sample after it, time, speed jump m/s)``.
+
+    Args:
+        t: ``(n,)`` sample times (s), increasing.
+        position: ``(n, 3)`` positions (m); rows without x or z are left out, a y that is
+            NaN everywhere (a side view) is ``y_default`` (the ball's y in the scene).
+        scene: its solids and gravity.
+        radius: the ball's radius (m).
+    """
+    t = np.asarray(t, dtype=np.float64)
+    p = np.array(position, dtype=np.float64)
+    if np.all(np.isnan(p[:, 1])):
+        p[:, 1] = y_default
+    ok = np.isfinite(t) & np.all(np.isfinite(p), axis=1)
+    rows = np.flatnonzero(ok)
+    if rows.size < 2 * WINDOW + 1 or np.median(np.diff(t[rows])) > 1.0 / MIN_RATE:
+        return []
+    g = float(scene.gravity)
+    tt, pp = t[rows], p[rows].copy()
+    pp[:, 2] += 0.5 * g * tt**2  # w: straight in a flight in vacuum
+    jumps = []  # (row, time, jump, where) of every sample whose jump exceeds the bounds
+    for k in range(WINDOW, rows.size - WINDOW + 1):
+        (va, ma, ta), (vb, mb, tb) = _velocity(tt[k - WINDOW:k], pp[k - WINDOW:k]), _velocity(tt[k:k + WINDOW],
+                                                                                        pp[k:k + WINDOW])
+        tc = 0.5 * (tt[k - 1] + tt[k])
+        jump = float(np.linalg.norm(vb - va))
+        before = va - np.array([0.0, 0.0, g * tc])
+        if jump > max(HIT_SPEED, HIT_FRACTION * float(np.linalg.norm(before))):
+            at = 0.5 * ((ma + va * (tc - ta)) + (mb + vb * (tc - tb)))
+            at[2] -= 0.5 * g * tc**2
+            jumps.append((k, float(tc), jump, at))
+    # The windows that straddle one jump all see it, most strongly where they meet at it:
+    # each run's largest is the jump, and there a bounce's ball touches its solid.
+    peaks = []
+    for j in jumps:
+        if peaks and j[0] - peaks[-1][-1] <= WINDOW:
+            last = j[0]
+            peaks[-1] = (j if j[2] > peaks[-1][0][2] else peaks[-1][0], last)
+        else:
+            peaks.append((j, j[0]))
+    found = []
+    for (k, tc, jump, at), _ in peaks:
+        in_box, in_plane = inside(np, scene, at[None], np.array([radius + CLEARANCE]))
+        if not (in_box.any() or in_plane.any()):
+            found.append((int(rows[k]), tc, jump))
+    return found
+
+
+def longest_stretch(n: int, found) -> tuple[int, int]:
+    """``(start, stop)``: the longest run of the ``n`` samples between the hits ``found``
+    (the earliest of equal ones)."""
+    edges = [0] + [h[0] for h in found] + [n]
+    lengths = np.diff(edges)
+    k = int(np.argmax(lengths))
+    return edges[k], edges[k + 1]
