@@ -92,7 +92,7 @@ def test_a_serve_after_its_toss_starts_at_the_hit(tmp_path, capsys):
 
 def test_bounces_edges_and_spinning_flights_are_no_hits():
     # Shots of every spin the camera study draws (topspin to backspin, sidespin), 180 Hz,
-    # 2 mm noise, each bouncing once on the table; the bundled staircase tracks (60 fps,
+    # 2 mm noise, each bouncing once on the table, each with a glitch; the bundled staircase tracks (60 fps,
     # bounces on treads and their edges, dropped frames, outliers); the real drops in metres.
     scene = estim.load_scene(TABLE)
     sys.path.insert(0, str(ROOT / "docs" / "scripts"))
@@ -100,9 +100,12 @@ def test_bounces_edges_and_spinning_flights_are_no_hits():
 
     rng = np.random.default_rng(3)
     t = np.arange(0.0, 0.6, 1 / RATE)
-    for _ in range(8):
+    for k in range(8):
         _, path = camera_views.draw_shot(rng, scene, t)
-        assert hits(t, path + rng.normal(0.0, 0.002, path.shape), scene, 0.02) == []
+        path = path + rng.normal(0.0, 0.002, path.shape)
+        # A tracker's glitch: a burst of 1 to 8 samples 10 cm off, mid-flight, jumps away and back.
+        path[20:21 + k] += 0.1
+        assert hits(t, path, scene, 0.02) == []
     stairs = estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml")
     tracks = read_tracks_csv(ROOT / "data" / "tracks" / "stairs_demo.csv", scene=stairs)
     for b in tracks.balls:

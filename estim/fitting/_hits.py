@@ -16,7 +16,10 @@ the jump at i (plus what the air changes over a window, a fraction of a metre pe
 for a ping-pong ball at 180 Hz). A jump is a hit where it exceeds ``HIT_SPEED`` and
 ``HIT_FRACTION`` of the speed before it, and where the ball (both lines carried to the
 middle of the two windows, averaged) is further than ``CLEARANCE`` beyond its radius from
-every solid (``estim.forward._balls.inside``): at a bounce, the ball touches one. Tracks
+every solid (``estim.forward._balls.inside``): at a bounce, the ball touches one. The
+windows next out (samples ``WINDOW`` to ``2 WINDOW`` away on either side) must see the
+jump too: a tracker's glitch, a few bad samples in a row, jumps away and back, a hit stays;
+a jump within ``2 WINDOW`` samples of either end of the track is not called a hit. Tracks
 sampled below ``MIN_RATE`` are not searched (a window then spans most of a flight).
 """
 
@@ -88,6 +91,15 @@ def hits(t, position, scene: Scene, radius: float, y_default: float = 0.0) -> li
             peaks.append((j, j[0]))
     found = []
     for (k, tc, jump, at), _ in peaks:
+        if k < 2 * WINDOW or k + 2 * WINDOW > rows.size:
+            continue  # too close to an end of the track to tell a hit from a few bad samples
+        # The next windows out must see the jump too: a burst of a few bad samples (a
+        # tracker's glitch) jumps and jumps back, a hit stays.
+        va = _velocity(tt[k - 2 * WINDOW:k - WINDOW], pp[k - 2 * WINDOW:k - WINDOW])[0]
+        vb = _velocity(tt[k + WINDOW:k + 2 * WINDOW], pp[k + WINDOW:k + 2 * WINDOW])[0]
+        before = va - np.array([0.0, 0.0, g * tc])
+        if float(np.linalg.norm(vb - va)) <= max(HIT_SPEED, HIT_FRACTION * float(np.linalg.norm(before))):
+            continue
         in_box, in_plane = inside(np, scene, at[None], np.array([radius + CLEARANCE]))
         if not (in_box.any() or in_plane.any()):
             found.append((int(rows[k]), tc, jump))
