@@ -39,13 +39,22 @@ CLEARANCE = 0.03  # m beyond the radius: further from every solid than a bounce'
 MIN_RATE = 60.0  # samples per second
 
 
-def _velocity(t, y):
-    """Least-squares slope of the columns of ``y (n, k)`` against ``t (n,)``, and the line's
-    value at the mean time."""
-    tm = t.mean()
-    dt = t - tm
-    slope = dt @ (y - y.mean(axis=0)) / (dt @ dt)
-    return slope, y.mean(axis=0), tm
+def _jump(tt, pp, k: int, out: int, g: float):
+    """At sample k, from straight lines through the ``WINDOW`` samples ``out`` windows away
+    before it and after it (``out = 0``: adjacent): the velocity jump (m/s), whether it is
+    one (above ``HIT_SPEED`` and ``HIT_FRACTION`` of the speed before), and where the ball
+    is between the two windows (the two lines carried to the middle time, averaged)."""
+    ends = []
+    for lo in (k - (out + 1) * WINDOW, k + out * WINDOW):
+        t, y = tt[lo:lo + WINDOW], pp[lo:lo + WINDOW]
+        dt = t - t.mean()
+        ends.append((dt @ (y - y.mean(axis=0)) / (dt @ dt), y.mean(axis=0), t.mean()))
+    (va, ma, ta), (vb, mb, tb) = ends
+    tc = 0.5 * (tt[k - 1] + tt[k])
+    jump = float(np.linalg.norm(vb - va))
+    speed = float(np.linalg.norm(va - np.array([0.0, 0.0, g * tc])))
+    at = 0.5 * ((ma + va * (tc - ta)) + (mb + vb * (tc - tb))) - np.array([0.0, 0.0, 0.5 * g * tc**2])
+    return jump, jump > max(HIT_SPEED, HIT_FRACTION * speed), tc, at
 
 
 def hits(t, position, scene: Scene, radius: float, y_default: float = 0.0) -> list[tuple[int, float, float]]:
@@ -62,47 +71,33 @@ def hits(t, position, scene: Scene, radius: float, y_default: float = 0.0) -> li
     p = np.array(position, dtype=np.float64)
     if np.all(np.isnan(p[:, 1])):
         p[:, 1] = y_default
-    ok = np.isfinite(t) & np.all(np.isfinite(p), axis=1)
-    rows = np.flatnonzero(ok)
+    rows = np.flatnonzero(np.isfinite(t) & np.all(np.isfinite(p), axis=1))
     if rows.size < 2 * WINDOW + 1 or np.median(np.diff(t[rows])) > 1.0 / MIN_RATE:
         return []
     g = float(scene.gravity)
-    tt, pp = t[rows], p[rows].copy()
+    tt, pp = t[rows], p[rows]
     pp[:, 2] += 0.5 * g * tt**2  # w: straight in a flight in vacuum
-    jumps = []  # (row, time, jump, where) of every sample whose jump exceeds the bounds
-    for k in range(WINDOW, rows.size - WINDOW + 1):
-        (va, ma, ta), (vb, mb, tb) = _velocity(tt[k - WINDOW:k], pp[k - WINDOW:k]), _velocity(tt[k:k + WINDOW],
-                                                                                        pp[k:k + WINDOW])
-        tc = 0.5 * (tt[k - 1] + tt[k])
-        jump = float(np.linalg.norm(vb - va))
-        before = va - np.array([0.0, 0.0, g * tc])
-        if jump > max(HIT_SPEED, HIT_FRACTION * float(np.linalg.norm(before))):
-            at = 0.5 * ((ma + va * (tc - ta)) + (mb + vb * (tc - tb)))
-            at[2] -= 0.5 * g * tc**2
-            jumps.append((k, float(tc), jump, at))
-    # The windows that straddle one jump all see it, most strongly where they meet at it:
-    # each run's largest is the jump, and there a bounce's ball touches its solid.
-    peaks = []
-    for j in jumps:
-        if peaks and j[0] - peaks[-1][-1] <= WINDOW:
-            last = j[0]
-            peaks[-1] = (j if j[2] > peaks[-1][0][2] else peaks[-1][0], last)
+    jumps = [k for k in range(WINDOW, rows.size - WINDOW + 1) if _jump(tt, pp, k, 0, g)[1]]
+    # The windows that straddle one jump all see it, most where they meet at it: each run's
+    # largest is the jump, and there a bounce's ball touches its solid.
+    runs = []
+    for k in jumps:
+        if runs and k - runs[-1][-1] <= WINDOW:
+            runs[-1].append(k)
         else:
-            peaks.append((j, j[0]))
+            runs.append([k])
     found = []
-    for (k, tc, jump, at), _ in peaks:
-        if k < 2 * WINDOW or k + 2 * WINDOW > rows.size:
-            continue  # too close to an end of the track to tell a hit from a few bad samples
-        # The next windows out must see the jump too: a burst of a few bad samples (a
-        # tracker's glitch) jumps and jumps back, a hit stays.
-        va = _velocity(tt[k - 2 * WINDOW:k - WINDOW], pp[k - 2 * WINDOW:k - WINDOW])[0]
-        vb = _velocity(tt[k + WINDOW:k + 2 * WINDOW], pp[k + WINDOW:k + 2 * WINDOW])[0]
-        before = va - np.array([0.0, 0.0, g * tc])
-        if float(np.linalg.norm(vb - va)) <= max(HIT_SPEED, HIT_FRACTION * float(np.linalg.norm(before))):
+    for run in runs:
+        k = max(run, key=lambda k: _jump(tt, pp, k, 0, g)[0])
+        # Too close to an end of the track to tell a hit from a few bad samples; and the
+        # windows next out must see the jump too: a burst of bad samples (a tracker's
+        # glitch) jumps away and back, a hit stays.
+        if k < 2 * WINDOW or k + 2 * WINDOW > rows.size or not _jump(tt, pp, k, 1, g)[1]:
             continue
+        jump, _, tc, at = _jump(tt, pp, k, 0, g)
         in_box, in_plane = inside(np, scene, at[None], np.array([radius + CLEARANCE]))
         if not (in_box.any() or in_plane.any()):
-            found.append((int(rows[k]), tc, jump))
+            found.append((int(rows[k]), float(tc), jump))
     return found
 
 
