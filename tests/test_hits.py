@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_fit_friction import mujoco_shot
 
 import estim
 from estim.app._bench import TABLE_SHOT
@@ -92,8 +93,9 @@ def test_a_serve_after_its_toss_starts_at_the_hit(tmp_path, capsys):
 
 def test_bounces_edges_and_spinning_flights_are_no_hits():
     # Shots of every spin the camera study draws (topspin to backspin, sidespin), 180 Hz,
-    # 2 mm noise, each bouncing once on the table, each with a glitch; the bundled staircase tracks (60 fps,
-    # bounces on treads and their edges, dropped frames, outliers); the real drops in metres.
+    # 2 mm noise, each bouncing once on the table, each with a glitch; a shot of MuJoCo's
+    # physics; the bundled staircase tracks (60 fps, bounces on treads and their edges,
+    # dropped frames, outliers); the real drops in metres.
     scene = estim.load_scene(TABLE)
     sys.path.insert(0, str(ROOT / "docs" / "scripts"))
     import camera_views
@@ -106,6 +108,9 @@ def test_bounces_edges_and_spinning_flights_are_no_hits():
         # A tracker's glitch: a burst of 1 to 8 samples 10 cm off, mid-flight, jumps away and back.
         path[20:21 + k] += 0.1
         assert hits(t, path, scene, 0.02) == []
+    # MuJoCo's own physics, whose soft contact spreads the bounce over milliseconds.
+    t_mj, path = mujoco_shot(noise=0.002)[:2]
+    assert hits(t_mj, path, scene, 0.02) == []
     stairs = estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml")
     tracks = read_tracks_csv(ROOT / "data" / "tracks" / "stairs_demo.csv", scene=stairs)
     for b in tracks.balls:
