@@ -89,6 +89,12 @@ def test_a_serve_after_its_toss_starts_at_the_hit(tmp_path, capsys):
     assert np.allclose(ball["release"]["position"], hit, atol=0.01)
     assert np.allclose(ball["release"]["velocity"], s["velocity"], atol=0.1)
     _close_to_the_shot(ball)
+    # A ball held still in the hand before the same shot: its release is a hit too.
+    held = np.concatenate([np.tile(hit, (t_toss.size, 1)), shot])
+    held += np.random.default_rng(3).normal(0.0, 0.002, held.shape)
+    found = hits(np.concatenate([t_toss, 0.3 + t_shot]), held, scene, 0.02)
+    # (The shot's first sample is still at the hand: the cut falls on it or after it.)
+    assert len(found) == 1 and found[0][0] - t_toss.size in (0, 1)
 
 
 def test_bounces_edges_and_spinning_flights_are_no_hits():
