@@ -42,6 +42,25 @@ def test_fit_demo_csv(tmp_path, capsys):
         assert len(data) > 1000 and data.startswith(PNG), name
 
 
+def test_a_video_clock_is_released_at_its_first_sample(tmp_path, capsys):
+    """The bundled tracks on a video's clock (every time 12.34 s later): `estim fit` takes
+    each ball's release at its first sample, says so, and fits what it fits on the
+    release's own clock (the same values to rounding). `estim.fit` itself keeps t0 = 0
+    (tests/test_fit.py::test_late_clock_is_pointed_out)."""
+    lines = Path(DEMO_CSV).read_text().splitlines()
+    shifted = [lines[0]] + [f"{float(a) + 12.34!r},{rest}" for a, rest in (row.split(",", 1) for row in lines[1:])]
+    (tmp_path / "late.csv").write_text("\n".join(shifted) + "\n")
+    fits = []
+    for path in (DEMO_CSV, str(tmp_path / "late.csv")):
+        assert main(["fit", path, "--scene", SCENE, "--json"]) == 0
+        fits.append(json.loads(capsys.readouterr().out)["balls"])
+    for ball, late in fits[1].items():
+        assert "the track's clock starts at t = 12.340 s" in late["notes"][0]
+        assert late["release"]["t"] == pytest.approx(12.34, abs=1e-9)
+        for name in ("e", "mu_t", "vx0", "x0", "z0"):
+            assert late[name] == pytest.approx(fits[0][ball][name], abs=1e-6), (ball, name)
+
+
 def _fails(argv, capsys, *words):
     code = main(argv)
     err = capsys.readouterr().err

@@ -14,7 +14,7 @@ from ..tracks._exports import read_kinovea, read_tracker
 from ..tracks._image import read_image_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
 from . import _registry as registry
-from ._fit import fit
+from ._fit import LATE_START, fit
 from ._hits import hits, longest_stretch
 from ._image import fit_image
 from ._initial import initial_guess, split_flights
@@ -26,7 +26,9 @@ def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
     was fitted. A track that something the scene does not have hits (a racket, a hand:
     ``estim.fitting._hits``) is fitted on its longest stretch between hits, released at
     that stretch's first sample (``t0``, unless ``fixed`` holds it), with a note that says
-    where it was cut and how many samples were left out."""
+    where it was cut and how many samples were left out. A track whose clock starts more
+    than ``LATE_START`` after t = 0 (a video's clock) is released at its first sample too,
+    with a note (``estim.fit`` itself releases at t = 0 unless told otherwise)."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     tracks = read_tracks_csv(tracks_path, scene=scene)
     data, notes = {}, {}
@@ -47,6 +49,16 @@ def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
             if start > 0:
                 fixed.setdefault(b, {}).setdefault("t0", float(t[start]))
             t, pos = t[start:stop], pos[start:stop]
+        first = float(t[np.flatnonzero(np.isfinite(pos).any(axis=1))[0]])
+        if "t0" not in fixed.get(b, {}) and first > LATE_START:
+            # A video's clock: released at t = 0, the model would fly unseen for seconds
+            # and its release state would be all but free.
+            fixed.setdefault(b, {})["t0"] = first
+            late = (f"the track's clock starts at t = {first:.3f} s, more than {LATE_START:g} s after t = 0: "
+                    "the release is taken at its first sample (to fit the release time instead: --also t0)")
+            notes[b] = f"{notes[b]}; {late}" if b in notes else late
+            if say:
+                say(f"{b}: {late}")
         data[b] = (t, pos)
     result = fit(scene, data, progress=say, fixed=fixed or None, **options)
     for b, note in notes.items():
