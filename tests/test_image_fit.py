@@ -13,6 +13,7 @@ import pytest
 from test_image_tracks import BEHIND, SIDE, _tracks
 
 import estim
+from estim.app._bench import camera_shot
 from estim.app._cli import main
 from estim.fitting._fit import BallFit
 from estim.fitting._image import AMBIGUOUS, DEPTH_LIMIT, _alternative, _depth_report, fit_image
@@ -271,3 +272,25 @@ def test_mujoco_as_the_camera():
     error = np.linalg.norm(bf.model_position - path, axis=1)
     assert bf.rms_m < 0.5 and np.mean(error) < 0.01, (bf.rms_m, np.mean(error))
     assert abs(bf.values["e"] - TRUTH["e"]) < 0.02
+
+
+def test_a_video_clock_is_released_at_its_first_frame(tmp_path):
+    """The bench's one-camera shot on a video's clock (every time 12.34 s later): `estim fit
+    --camera` takes the release at the first frame and says so, and fits what it fits on
+    the release's own clock (the same values to rounding). Before, the start read the
+    release 12 s back along the first flight, a kilometre under the floor, and the fit
+    refused it."""
+    from estim.fitting._job import fit_image_csv
+
+    track, camera = camera_shot(str(tmp_path))
+    lines = open(track).read().splitlines()
+    late = tmp_path / "late.csv"
+    late.write_text("\n".join([lines[0]] + [f"{float(a) + 12.34!r},{rest}" for a, rest in
+                                             (row.split(",", 1) for row in lines[1:])]) + "\n")
+    scene = estim.load_scene("data/scenes/table_tennis.xml")
+    (on_time, _), (shifted, _) = (fit_image_csv(p, [camera], scene) for p in (track, late))
+    a, b = on_time.balls["pingpong"], shifted.balls["pingpong"]
+    assert "the track's clock starts at t = 12.340 s" in b.notes[0]
+    assert b.values["t0"] == pytest.approx(12.34, abs=1e-9) and a.values["t0"] == 0.0
+    for name in ("e", "mu", "x0", "y0", "z0", "vx0", "vy0", "vz0"):
+        assert b.values[name] == pytest.approx(a.values[name], abs=1e-6), name

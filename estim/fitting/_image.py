@@ -136,10 +136,12 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     if len(tracks.cameras) > registry.MAX_CAMERAS:
         raise ValueError(f"{len(tracks.cameras)} cameras: an image fit takes at most {registry.MAX_CAMERAS}")
     say = progress or (lambda msg: None)
+    given = fixed or {}
     data, images, ball_of, starts = {}, {}, {}, {}
     arrays = CameraArrays.of(tracks.cameras)
     for b in tracks.balls:
         scene.ball(b)  # KeyError naming the scene's balls
+        t0 = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
         try:
             recs = reconstructions(tracks, b, scene, alternatives=STARTS)
         except ValueError as err:
@@ -147,7 +149,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         recs = [_inside_out(rec, scene, b, tracks) for rec in recs]
         if len(recs) < STARTS:
             farther = recs[0].scaled(FARTHER, tracks.cameras[0].centre)
-            if not _released_inside(farther, scene, b):
+            if not _released_inside(farther, scene, b, t0):
                 recs.append(farther)
         ok = tracks.valid(b)
         t, first = np.unique(tracks.t[b][ok], return_index=True)
@@ -157,7 +159,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
             key = _key(b, j)
             rec = recs[min(j, len(recs) - 1)]
             data[key] = (t, rec.position[ok][first])
-            starts[key] = start_values(rec, scene, b)
+            starts[key] = start_values(rec, scene, b, t0)
             images[key] = ImageRows(t=tracks.t[b], uv=tracks.uv[b], view=tracks.view[b], cameras=arrays,
                                     noise=tracks.noise(b), initial=_initial(rec, starts[key]))
             ball_of[key] = b
@@ -166,7 +168,6 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     free = registry.expand(default_image_free(scene, len(tracks.cameras)) if free is None else free)
     # The path's own starts for the fitted parameters (fixed values double as starts);
     # what the caller holds or gives wins.
-    given = fixed or {}
     fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
     every, units = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
                             max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True,
@@ -188,15 +189,15 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     return result
 
 
-def start_values(rec, scene: Scene, ball: str) -> dict[str, float]:
+def start_values(rec, scene: Scene, ball: str, t0: float = 0.0) -> dict[str, float]:
     """Starting values read off a start path (``estim.tracks._reconstruct``): the release
-    state at t = 0 from its first flight; at its first bounce, e from the normal velocities
+    state at ``t0`` from its first flight; at its first bounce, e from the normal velocities
     (``-v_z after / v_z before``), the friction law's mu from the tangential change
     (``|dv_t| / ((1 + e) |v_z before|)``: a sliding bounce's, a lower bound where the ball
     grips); in air the spin from the first flight's own acceleration less the drag, the
     Magnus part inverted (``estim.model._air.spin_for_lift``). Clipped inside the ranges."""
-    out = dict(zip(("x0", "y0", "z0"), map(float, rec.flights[0, 0] + _back(rec, 0.0)), strict=True))
-    out.update(zip(("vx0", "vy0", "vz0"), map(float, rec.velocity(0.0, 0)), strict=True))
+    out = dict(zip(("x0", "y0", "z0"), map(float, rec.flights[0, 0] + _back(rec, t0)), strict=True))
+    out.update(zip(("vx0", "vy0", "vz0"), map(float, rec.velocity(t0, 0)), strict=True))
     if rec.bounces:
         b = rec.bounces[0]
         before, after = rec.velocity(b, 0), rec.velocity(b, 1)
@@ -260,11 +261,11 @@ def _key(ball: str, j: int) -> str:
     return ball if j == 0 else f"{ball}#start{j + 1}"
 
 
-def _released_inside(rec, scene: Scene, ball: str) -> bool:
+def _released_inside(rec, scene: Scene, ball: str, t0: float = 0.0) -> bool:
     """Whether a start path's release point (:func:`start_values`) lies within the ball's
     radius of a solid, where a fit cannot start. (Near its bounces a start moved along the
     rays may run through the surface: the fit's physics takes it off.)"""
-    values = start_values(rec, scene, ball)
+    values = start_values(rec, scene, ball, t0)
     point = np.array([[values["x0"], values["y0"], values["z0"]]])
     in_box, in_plane = inside(np, scene, point, np.array([scene.ball(ball).radius]))
     return bool(in_box.any() or in_plane.any())

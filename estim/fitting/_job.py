@@ -49,16 +49,9 @@ def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
             if start > 0:
                 fixed.setdefault(b, {}).setdefault("t0", float(t[start]))
             t, pos = t[start:stop], pos[start:stop]
-        first = float(t[np.flatnonzero(np.isfinite(pos).any(axis=1))[0]])
-        if "t0" not in fixed.get(b, {}) and first > LATE_START:
-            # A video's clock: released at t = 0, the model would fly unseen for seconds
-            # and its release state would be all but free.
-            fixed.setdefault(b, {})["t0"] = first
-            late = (f"the track's clock starts at t = {first:.3f} s, more than {LATE_START:g} s after t = 0: "
-                    "the release is taken at its first sample (to fit the release time instead: --also t0)")
+        late = _late_clock(b, t[np.isfinite(pos).any(axis=1)], fixed, say)
+        if late:
             notes[b] = f"{notes[b]}; {late}" if b in notes else late
-            if say:
-                say(f"{b}: {late}")
         data[b] = (t, pos)
     result = fit(scene, data, progress=say, fixed=fixed or None, **options)
     for b, note in notes.items():
@@ -80,8 +73,29 @@ def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **
         raise ValueError(f"two camera files share the name {sorted({n for n in names if names.count(n) > 1})} "
                          "(a camera is named by its file's stem): rename one")
     tracks = read_image_tracks_csv(tracks_path, cameras, balls=[b.name for b in scene.balls])
-    result = fit_image(scene, tracks, progress=say, **options)
+    fixed = {b: dict(v) for b, v in (options.pop("fixed", None) or {}).items()}
+    notes = {b: _late_clock(b, tracks.t[b][tracks.valid(b)], fixed, say) for b in tracks.balls}
+    result = fit_image(scene, tracks, progress=say, fixed=fixed or None, **options)
+    for b, note in notes.items():
+        if note:
+            result.balls[b].notes.insert(0, note)
     return result, tracks
+
+
+def _late_clock(ball: str, t, fixed: dict, say) -> str | None:
+    """A track whose clock starts more than ``LATE_START`` after t = 0 (a video's): its
+    release held at its first sample (in ``fixed``, unless that holds one already), and
+    the note that says so; None otherwise. Released at t = 0, the model would fly unseen
+    for seconds and its release state would be all but free."""
+    first = float(np.min(t))
+    if "t0" in fixed.get(ball, {}) or first <= LATE_START:
+        return None
+    fixed.setdefault(ball, {})["t0"] = first
+    note = (f"the track's clock starts at t = {first:.3f} s, more than {LATE_START:g} s after t = 0: the release "
+            "is taken at its first sample (to fit the release time instead: --also t0)")
+    if say:
+        say(f"{ball}: {note}")
+    return note
 
 
 EXPORTS = {"tracker": read_tracker, "kinovea": read_kinovea}
