@@ -11,7 +11,7 @@ from ..model._scene import Scene, load_scene
 from ..tracks._camera import read_camera
 from ..tracks._csv import Tracks, TracksError, read_tracks_csv
 from ..tracks._exports import read_kinovea, read_tracker
-from ..tracks._image import read_image_tracks_csv
+from ..tracks._image import ImageTracks, read_image_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
 from . import _registry as registry
 from ._fit import LATE_START, fit
@@ -22,15 +22,22 @@ from ._pooled import Clip, fit_clips
 
 
 def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
-    """Fit a tracks CSV: returns (result, data) with data ``ball -> (t, position)``, what
-    was fitted. A track that something the scene does not have hits (a racket, a hand:
-    ``estim.fitting._hits``) is fitted on its longest stretch between hits, released at
-    that stretch's first sample (``t0``, unless ``fixed`` holds it), with a note that says
-    where it was cut and how many samples were left out. A track whose clock starts more
-    than ``LATE_START`` after t = 0 (a video's clock) is released at its first sample too,
-    with a note (``estim.fit`` itself releases at t = 0 unless told otherwise)."""
+    """Fit a tracks CSV (``estim fit TRACKS``): returns (result, data) with data ``ball ->
+    (t, position)``, what was fitted (:func:`fit_tracks`)."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
-    tracks = read_tracks_csv(tracks_path, scene=scene)
+    result, data = fit_tracks(scene, read_tracks_csv(tracks_path, scene=scene), say=say, **options)
+    result.source = os.fspath(tracks_path)
+    return result, data
+
+
+def fit_tracks(scene: Scene, tracks: Tracks, *, say=None, **options):
+    """Fit tracks in metres as ``estim fit`` does: returns (result, data) with data ``ball
+    -> (t, position)``, what was fitted. A track that something the scene does not have
+    hits (a racket, a hand: ``estim.fitting._hits``) is fitted on its longest stretch
+    between hits, released at that stretch's first sample (``t0``, unless ``fixed`` holds
+    it), with a note that says where it was cut and how many samples were left out; a
+    track on a video's clock is released at its first sample (:func:`_late_clock`).
+    ``options`` are :func:`estim.fit`'s, which itself does neither."""
     data, notes = {}, {}
     fixed = {b: dict(v) for b, v in (options.pop("fixed", None) or {}).items()}
     for b in tracks.balls:
@@ -56,7 +63,6 @@ def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
     result = fit(scene, data, progress=say, fixed=fixed or None, **options)
     for b, note in notes.items():
         result.balls[b].notes.insert(0, note)
-    result.source = os.fspath(tracks_path)
     return result, data
 
 
@@ -64,7 +70,7 @@ def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **
     """Fit an image-track CSV (``t,ball,u,v[,camera]``) seen by the cameras of
     ``camera_paths`` (camera files, in the order the ``camera`` column numbers them):
     ``estim fit TRACKS --camera CAM ...``. Returns ``(result, tracks)``: the
-    :class:`FitResult` of :func:`estim.fitting._image.fit_image` and the
+    :class:`FitResult` of :func:`fit_images` and the
     :class:`~estim.tracks._image.ImageTracks` read."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     cameras = [read_camera(p) for p in camera_paths]
@@ -73,13 +79,19 @@ def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **
         raise ValueError(f"two camera files share the name {sorted({n for n in names if names.count(n) > 1})} "
                          "(a camera is named by its file's stem): rename one")
     tracks = read_image_tracks_csv(tracks_path, cameras, balls=[b.name for b in scene.balls])
+    return fit_images(scene, tracks, say=say, **options), tracks
+
+
+def fit_images(scene: Scene, tracks: ImageTracks, *, say=None, **options):
+    """Fit image tracks as ``estim fit --camera`` does: :func:`estim.fitting._image.fit_image`,
+    a track on a video's clock released at its first frame (:func:`_late_clock`)."""
     fixed = {b: dict(v) for b, v in (options.pop("fixed", None) or {}).items()}
     notes = {b: _late_clock(b, tracks.t[b][tracks.valid(b)], fixed, say) for b in tracks.balls}
     result = fit_image(scene, tracks, progress=say, fixed=fixed or None, **options)
     for b, note in notes.items():
         if note:
             result.balls[b].notes.insert(0, note)
-    return result, tracks
+    return result
 
 
 def _late_clock(ball: str, t, fixed: dict, say) -> str | None:
@@ -104,8 +116,8 @@ EXPORTS = {"tracker": read_tracker, "kinovea": read_kinovea}
 def fit_export(path, kind: str, scene: Scene | str, *, units: str, camera_path=None, say=None, reader=None,
                **options):
     """Fit a video tracker's export (``kind``: ``"tracker"`` or ``"kinovea"``;
-    ``estim.tracks._exports``): in metres as a tracks file, in pixels (``units="px"``)
-    through the camera of ``camera_path``. ``reader`` holds the reader's keywords (``ball``,
+    ``estim.tracks._exports``): in metres as a tracks file (:func:`fit_tracks`), in pixels
+    (``units="px"``) through the camera of ``camera_path`` (:func:`fit_images`). ``reader`` holds the reader's keywords (``ball``,
     ``origin``, ``y_up``, ``angle_deg``, ``time_unit``). Returns ``(result, data)``: data
     ``ball -> (t, position)`` for metres, the :class:`ImageTracks` for pixels."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
@@ -114,11 +126,10 @@ def fit_export(path, kind: str, scene: Scene | str, *, units: str, camera_path=N
     camera = None if camera_path is None else read_camera(camera_path)
     tracks = EXPORTS[kind](path, units=units, camera=camera, **(reader or {}))
     if isinstance(tracks, Tracks):
-        data = {b: (tracks.t[b], tracks.position[b]) for b in tracks.balls}
-        result = fit(scene, data, progress=say, **options)
+        result, data = fit_tracks(scene, tracks, say=say, **options)
     else:
         data = tracks
-        result = fit_image(scene, tracks, progress=say, **options)
+        result = fit_images(scene, tracks, say=say, **options)
     result.source = os.fspath(path)
     return result, data
 
