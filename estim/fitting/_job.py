@@ -117,9 +117,10 @@ def fit_export(path, kind: str, scene: Scene | str, *, units: str, camera_path=N
                **options):
     """Fit a video tracker's export (``kind``: ``"tracker"`` or ``"kinovea"``;
     ``estim.tracks._exports``): in metres as a tracks file (:func:`fit_tracks`), in pixels
-    (``units="px"``) through the camera of ``camera_path`` (:func:`fit_images`). ``reader`` holds the reader's keywords (``ball``,
-    ``origin``, ``y_up``, ``angle_deg``, ``time_unit``). Returns ``(result, data)``: data
-    ``ball -> (t, position)`` for metres, the :class:`ImageTracks` for pixels."""
+    (``units="px"``) through the camera of ``camera_path`` (:func:`fit_images`). ``reader``
+    holds the reader's keywords (``ball``, ``origin``, ``y_up``, ``angle_deg``,
+    ``time_unit``). Returns ``(result, data)``: data ``ball -> (t, position)`` for metres,
+    the :class:`ImageTracks` for pixels."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     if kind not in EXPORTS:
         raise ValueError(f"unknown export {kind!r}; estim reads {sorted(EXPORTS)}")
