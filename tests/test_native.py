@@ -21,6 +21,8 @@ from conftest import ROOT, box_distance, jax_path
 
 import estim
 from estim.forward import _native
+from estim.forward._constants import CONTACT, REST_SPEED
+from estim.forward._contact import contact_normals
 from estim.forward._simulate import flat_params
 from estim.forward._solver import plan as jax_plan
 from estim.forward.laws import FactorLaw
@@ -64,26 +66,44 @@ def balls_in(scene: estim.Scene, n: int, seed: int) -> estim.Params:
     return estim.Params(e[ok], mu[ok], r[ok], pos[ok], vel[ok], compression=compression[ok])
 
 
-# The kernels run the seed's geometry (a box is its faces; exact edges run on the JAX
-# planner): the seed scene declares it, the others are given it.
+def yard(geometry: str) -> estim.Scene:
+    return estim.Scene.from_arrays(
+        boxes={"wall": ((3.1, 0.0, 0.5), (0.1, 2.0, 0.5)), "block": ((1.0, 0.5, 0.25), (0.25, 0.25, 0.25))},
+        planes={"ground": ((0.0, 0.0, 1.0), 0.0), "side": ((0.0, -1.0, 0.0), -1.5)},
+        gravity=9.81, geometry=geometry,
+    )
+
+
+# The kernels run both geometries: the seed's (a box is its faces; the seed scene declares
+# it, the drop is given it) and exact edges and corners, with their rolls.
 SCENES = {
     "stairs": lambda: estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml"),
     "drop": lambda: estim.load_scene(ROOT / "data" / "scenes" / "drop.xml").with_geometry("seed"),
-    "yard": lambda: estim.Scene.from_arrays(
-        boxes={"wall": ((3.1, 0.0, 0.5), (0.1, 2.0, 0.5)), "block": ((1.0, 0.5, 0.25), (0.25, 0.25, 0.25))},
-        planes={"ground": ((0.0, 0.0, 1.0), 0.0), "side": ((0.0, -1.0, 0.0), -1.5)},
-        gravity=9.81, geometry="seed",
-    ),
+    "yard": lambda: yard("seed"),
+    "stairs_exact": lambda: estim.load_scene(ROOT / "data" / "scenes" / "stairs_exact.xml"),
+    "yard_exact": lambda: yard("exact"),
 }
 
 
-def test_exact_geometry_runs_on_the_jax_planner():
-    """A scene with exact edges is not the kernels' (it runs on the JAX planner), and the
-    kernels' own entry point refuses it, saying why."""
+def test_exact_geometry_runs_on_the_kernels():
+    """A scene with exact edges runs on the kernels; a law they do not implement (the
+    friction law of the table-tennis scene) on the JAX planner, and the kernels' own entry
+    point refuses it, saying why."""
     exact = estim.load_scene(ROOT / "data" / "scenes" / "stairs_exact.xml")
-    assert not _native.supports(FactorLaw(), exact) and not _native.runs(exact)
-    with pytest.raises(ValueError, match="the seed's geometry"):
-        _native.plan(exact, estim.Params(0.5, 0.9, 0.05, (0.0, 0.0, 1.6), (1.0, 0.0, 0.0)), 1.0, 16)
+    assert exact.geometry == "exact" and _native.supports(FactorLaw(), exact) and _native.runs(exact)
+    table = estim.load_scene(ROOT / "data" / "scenes" / "table_tennis.xml").with_air(None)
+    assert not _native.runs(table)
+    with pytest.raises(ValueError, match="do not support the contact law FrictionLaw"):
+        _native.plan(table, estim.Params(0.5, 0.9, 0.02, (0.0, 0.0, 0.3), (1.0, 0.0, 0.0)), 1.0, 16)
+
+
+def micro_bounces(scene: estim.Scene, plan, i: int) -> np.ndarray:
+    """For each contact of ball i's plan, its normal speed after the impact (NaN where a
+    segment ends otherwise)."""
+    face, reason = np.asarray(plan.decisions.face[i]), np.asarray(plan.decisions.reason[i])
+    normals = np.asarray(contact_normals(scene, np.maximum(face, 0), plan.segments.p1[i]))
+    speed = np.abs(np.sum(np.asarray(plan.segments.v1_post[i]) * normals, axis=-1))
+    return np.where(reason == CONTACT, speed, np.nan)
 
 
 @pytest.fixture(scope="module", params=list(SCENES))
@@ -99,15 +119,30 @@ def test_plan_matches_the_jax_planner(scene_balls):
     t_end, S = 3.0, 48
     native = _native.plan(scene, params, t_end, S)
     ref = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, t_end, S)))(flat_params(params))
-    kinds = np.asarray(ref.decisions.kind)
-    assert set(np.unique(kinds)) == {0, 1, 2, 3}, "the balls should make flights, trains and slides"
-    for name in ("kind", "support", "n", "reason", "face"):
-        np.testing.assert_array_equal(getattr(native.decisions, name), getattr(ref.decisions, name), err_msg=name)
-    np.testing.assert_array_equal(native.n_segments, ref.n_segments)
-    np.testing.assert_array_equal(native.complete, ref.complete)
-    for name in ("t0", "p0", "v0", "acc", "t1", "p1", "v1", "v1_post", "normal"):
-        np.testing.assert_allclose(getattr(native.segments, name), getattr(ref.segments, name),
-                                   rtol=ROUNDING, atol=ROUNDING, err_msg=name)
+    kinds = set(np.unique(np.asarray(ref.decisions.kind)).tolist())
+    assert kinds == ({0, 1, 2, 3, 4} if scene.geometry == "exact" else {0, 1, 2, 3}), \
+        "the balls should make flights, trains, slides (and rolls over edges)"
+    same = np.ones(params.e.shape[0], bool)
+    for name in ("kind", "support", "n", "reason", "face", "n_segments", "complete"):
+        holder = native if name in ("n_segments", "complete") else native.decisions
+        a, b = np.asarray(getattr(holder, name)), np.asarray(getattr(ref if holder is native else ref.decisions, name))
+        same &= np.all((a == b).reshape(a.shape[0], -1), axis=1)
+    # Where the two part ways, it is at a rounding's distance from a threshold: a bounce on
+    # an edge whose rebound is REST_SPEED to 1% (the ball rolls on one path, bounces once more
+    # on the other; found once in 300 balls on the exact staircase).
+    for i in np.flatnonzero(~same):
+        first = np.argmax(np.asarray(native.decisions.kind[i]) != np.asarray(ref.decisions.kind[i]))
+        assert abs(micro_bounces(scene, ref, i)[first - 1] / REST_SPEED - 1) < 0.01, f"ball {i} parts at slot {first}"
+    assert np.mean(same) > 0.99
+    # Bounces on an edge's curve magnify a difference in their state at each bounce (the
+    # curve turns it into the next bounce's normal): a series of micro-bounces on an edge
+    # (normal speeds below 1 mm/s) carries an ulp of the first to 1e-8 s and 1e-8 m/s
+    # (both paths are as right). Elsewhere the numbers agree to rounding.
+    ill = np.array([np.nanmin(micro_bounces(scene, ref, i), initial=np.inf) < 1e-3 for i in range(same.size)])
+    for name in ("t0", "p0", "v0", "acc", "t1", "p1", "v1", "v1_post", "normal", "pivot"):
+        a, b = np.asarray(getattr(native.segments, name)), np.asarray(getattr(ref.segments, name))
+        np.testing.assert_allclose(a[same & ~ill], b[same & ~ill], rtol=ROUNDING, atol=ROUNDING, err_msg=name)
+        np.testing.assert_allclose(a[same & ill], b[same & ill], rtol=1e-6, atol=1e-6, err_msg=name)
 
 
 @pytest.mark.parametrize("keep", [None, (), ("events",), ("samples", "solution")])
@@ -120,16 +155,23 @@ def test_trajectory_matches_the_jax_path(scene_balls, keep):
     with jax_path():
         ref = estim.simulate(scene, params, 3.0, ts=ts, keep=keep, throw=False)
     assert traj.layout == ref.layout
-    np.testing.assert_array_equal(traj.flags, ref.flags)
-    np.testing.assert_allclose(traj.record, ref.record, rtol=ROUNDING, atol=ROUNDING)
+    # (The balls whose plans part at a threshold, or that micro-bounce on an edge, as in
+    # test_plan_matches_the_jax_planner: compared there.)
+    plans = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, 3.0, 48)))(flat_params(params))
+    ok = np.array([np.nanmin(micro_bounces(scene, plans, i), initial=np.inf) >= 1e-3
+                   for i in range(params.e.shape[0])])
+    np.testing.assert_array_equal(traj.flags[ok], ref.flags[ok])
+    np.testing.assert_allclose(traj.record[ok], ref.record[ok], rtol=ROUNDING, atol=ROUNDING)
 
 
-def test_derivatives_match_the_jax_path(stairs):
+@pytest.mark.parametrize("geometry", ["seed", "exact"])
+def test_derivatives_match_the_jax_path(geometry):
     """Forward and reverse mode through the kernel (its tangent replays the structure in
     JAX) give the JAX path's derivatives: final state, event times and samples with
     respect to e, mu_t, the release velocity and the sample times (a third of the balls
-    compressed)."""
-    params = balls_in(stairs, 40, seed=7)
+    compressed), on the staircase of either geometry."""
+    stairs = SCENES["stairs" if geometry == "seed" else "stairs_exact"]()
+    params = balls_in(stairs, 40 if geometry == "seed" else 16, seed=7)
     ts = jnp.linspace(0.0, 2.0, 9)
 
     def outputs(e, mu_t, velocity, ts):

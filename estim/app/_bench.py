@@ -284,9 +284,9 @@ EXACT_TARGET = 1.5
 
 
 def run_exact_speed(scene, scene_path: str, repeats: int) -> dict:
-    """The seed forward (3 balls, jitted) on ``stairs_exact.xml`` (the JAX planner: the native
-    kernels have no edges) against the same on the seed scene, on its path (the kernels)
-    and on the JAX planner, timed in alternating rounds in this process."""
+    """The seed forward (3 balls, jitted) on ``stairs_exact.xml`` against the same on the seed
+    scene, both on their path (the native kernels, where built), and on the seed scene on
+    the JAX planner, timed in alternating rounds in this process."""
     exact = load_scene(os.path.join(os.path.dirname(scene_path), "stairs_exact.xml"))
     t_end = SEED["t_end"]
     three = seed_params(scene)
@@ -303,7 +303,7 @@ def run_exact_speed(scene, scene_path: str, repeats: int) -> dict:
 
 
 def format_exact_speed(x: dict) -> str:
-    return (f"exact geometry (stairs_exact.xml, JAX planner), seed forward 3 balls: {x['exact_us']:.1f} us/call "
+    return (f"exact geometry (stairs_exact.xml), seed forward 3 balls: {x['exact_us']:.1f} us/call "
             f"against {x['seed_us']:.1f} us on stairs.xml ({x['ratio']:.2f}x; target <= {x['target']:g}x: "
             f"{'met' if x['met'] else 'NOT met'}) and {x['seed_jax_us']:.1f} us on stairs.xml on the JAX planner "
             f"({x['ratio_jax']:.2f}x)")

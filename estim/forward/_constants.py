@@ -45,6 +45,28 @@ AXIS_TOL = 1e-12
 # solid grown by its radius (estim.forward._balls.inside).
 INSIDE_DEPTH = 1e-9
 
+# --- Edges and corners (estim.forward._curved, estim.forward._roll) --------------------------
+# A contact time on an edge or a corner: CURVED_BISECTIONS bisections shrink its bracket by
+# 2^-24 (6e-9 s on a 0.1 s window), then Newton's method converges quadratically from there
+# in CURVED_NEWTONS steps (to 1e-16 s).
+CURVED_BISECTIONS = 24
+CURVED_NEWTONS = 6
+# A flight's time window near a piece is searched to at most FAR_HORIZON (s) ahead (an
+# infinite horizon: a million seconds), and its crossings of the piece's box of reach are
+# kept within WINDOW_MARGIN times (1 + the box's coordinates) of its bounds (they are on the
+# bounds up to rounding).
+FAR_HORIZON = 1e6
+WINDOW_MARGIN = 1e-9
+# Duplication steps of Carlson's R_F: each divides the spread of its arguments by 4, and
+# after the first the spread is below 1, so 12 leave a series error below 1e-30 (Carlson 1995).
+RF_STEPS = 12
+# Newton steps for the hyperbolic angle of a time inside a roll: dt/dw is within a factor
+# sqrt 2 of constant, and the first step starts within a factor 2.
+ROLL_NEWTONS = 10
+# A roll whose energy parameter B is exactly 0 (moving off the ridge, by rounding) is taken
+# as B = RIDGE_B k, a hair above 0 (its time depends on B like B log B).
+RIDGE_B = 1e-300
+
 # --- Bounce series (estim.forward.laws) -----------------------------------------------------
 # Where mu_t and e agree to within SERIES_GAP the factor law's divided differences are
 # evaluated with e moved by SERIES_GAP (estim.forward.laws.FactorLaw).

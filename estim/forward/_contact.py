@@ -49,11 +49,13 @@ from ._constants import (
     FACE_OFFSET,
     FACE_ROW,
     FACE_SOLID,
+    FAR_HORIZON,
     HOP_HEIGHT,
     ON_FACE_TOL,
     POSITION_TOL,
     SPEED_TOL,
     TIE_TIME,
+    WINDOW_MARGIN,
 )
 from ._curved import distance_terms, entering_times, implicit_time, piece_normal
 
@@ -312,7 +314,7 @@ def _reach_box(faces: Faces):
 def _reaches(faces: Faces, p, v, a, horizon):
     """Whether the bounding box of the parabola over [0, horizon] meets each piece's box of
     reach (a cheap screen, before ``_reach_window``)."""
-    lo, hi = parabola_box(p, v, a, jnp.minimum(horizon, 1e6))
+    lo, hi = parabola_box(p, v, a, jnp.minimum(horizon, FAR_HORIZON))
     b_lo, b_hi = _reach_box(faces)
     return jnp.all((lo <= b_hi) & (hi >= b_lo), axis=1)
 
@@ -321,7 +323,7 @@ def _axis_window(p, v, a, lo, hi, horizon):
     """Per axis, the hull ``(t0, t1)`` of the times in ``[0, horizon]`` at which
     ``p + v t + a t^2 / 2`` lies in ``[lo, hi]`` (``t0 > t1``: never): its ends are among
     0, the horizon and the times it crosses lo or hi."""
-    h = jnp.minimum(horizon, 1e6)  # (an infinite horizon: a million seconds)
+    h = jnp.minimum(horizon, FAR_HORIZON)
 
     def crossings(c):
         # (a/2) t^2 + v t + (p - c) = 0, both roots without cancellation (Numerical Recipes 5.6).
@@ -338,7 +340,7 @@ def _axis_window(p, v, a, lo, hi, horizon):
     t = jnp.where(jnp.isfinite(cands), cands, -1.0)
     q = p[..., None] + v[..., None] * t + 0.5 * a[..., None] * t * t
     # The crossings are on the bounds up to rounding: a relative margin keeps them.
-    margin = 1e-9 * (1.0 + jnp.abs(lo) + jnp.abs(hi))[..., None]
+    margin = WINDOW_MARGIN * (1.0 + jnp.abs(lo) + jnp.abs(hi))[..., None]
     valid = (t >= 0) & (t <= h) & (q >= lo[..., None] - margin) & (q <= hi[..., None] + margin)
     return (jnp.min(jnp.where(valid, t, jnp.inf), axis=-1), jnp.max(jnp.where(valid, t, -jnp.inf), axis=-1))
 

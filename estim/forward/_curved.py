@@ -46,11 +46,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._fold import inner
+from ._constants import CURVED_BISECTIONS, CURVED_NEWTONS
 
 __all__ = ["entering_times", "piece_normal", "distance_terms"]
 
-BISECTIONS = 24  # shrink a bracket by 2^-24 (6e-9 s on a 0.1 s window) ...
-NEWTONS = 6  # ... then Newton's method converges quadratically from there (to 1e-16 s).
 
 
 def distance_terms(p, v, a, anchor, mask):
@@ -90,7 +89,7 @@ def _bracketed_root(f, lo, hi):
         right = (f_mid > 0) == (f_lo > 0)  # the sign changes in [mid, hi]
         return jnp.where(right, mid, lo), jnp.where(right, hi, mid), jnp.where(right, f_mid, f_lo)
 
-    lo, hi, _ = jax.lax.fori_loop(0, BISECTIONS, bisect, (lo, hi, f(lo)[0]))
+    lo, hi, _ = jax.lax.fori_loop(0, CURVED_BISECTIONS, bisect, (lo, hi, f(lo)[0]))
     value, _, curvature = f(lo)
     start = jnp.where(value * curvature > 0, lo, hi)
 
@@ -99,7 +98,7 @@ def _bracketed_root(f, lo, hi):
         ok = slope != 0
         return jnp.clip(t - jnp.where(ok, value / jnp.where(ok, slope, 1.0), 0.0), lo, hi)
 
-    return jax.lax.fori_loop(0, NEWTONS, newton, start)
+    return jax.lax.fori_loop(0, CURVED_NEWTONS, newton, start)
 
 
 def _quadratic_roots(a2, a1, a0):

@@ -105,6 +105,7 @@ struct Scene {
   const double* p_normal;  // (planes, 3)
   const double* p_offset;  // (planes,)
   double gravity;
+  bool exact;  // exact geometry (edges and corners; estim.model._scene): else the seed's
 };
 
 // A broad phase for first_contact, exact: a face's contact point lies within
@@ -118,10 +119,11 @@ constexpr double BROAD_MARGIN = 1e-6;
 struct Faces {
   const Scene* s = nullptr;
   double radius = 0.0;
+  int n_flat = 0;  // faces [0, n_flat) are flat, the rest edges and corners (exact geometry)
   std::vector<double> offset;  // plane offset for the ball's centre, per face
   std::vector<int32_t> order;  // rank * faces + index: ties go to lower rank, then index
-  // The faces of each solid, [first[b], first[b + 1]) (estim.model._scene lists them solid by
-  // solid); empty when a scene lists them otherwise, and then no broad phase is used.
+  // The flat faces of each solid, [first[b], first[b + 1]) (estim.model._scene lists them solid
+  // by solid); empty when a scene lists them otherwise, and then no broad phase is used.
   std::vector<int> first;
   std::vector<double> nx, ny, nz;  // the faces' normals, one array per axis
   std::vector<double> reach_lo[3], reach_hi[3];  // the solids' boxes grown for reach_bounds
@@ -166,9 +168,11 @@ struct Faces {
     const int F = scene.n_faces;
     order.resize(F);
     for (int f = 0; f < F; ++f) order[f] = scene.rank[f] * F + f;
-    first.assign(scene.n_solids + 1, F);
+    n_flat = 0;
+    while (n_flat < F && scene.rank[n_flat] == 1) ++n_flat;
+    first.assign(scene.n_solids + 1, n_flat);
     bool grouped = true;
-    for (int f = 0, b = 0; f < F && grouped; ++f) {  // b: the next solid to start
+    for (int f = 0, b = 0; f < n_flat && grouped; ++f) {  // b: the next solid to start
       const double solid = scene.row[f * ROW + SOLID];
       grouped = solid >= b - 1 && solid < scene.n_solids;
       for (; grouped && b <= solid; ++b) first[b] = f;
@@ -281,6 +285,491 @@ void face_times(const double* nx, const double* ny, const double* nz, const doub
   }
 }
 
+// ---------------------------------------------------------------------------------------
+// estim.forward._curved and the edges and corners of estim.forward._contact (exact geometry)
+
+// A piece's anchor (the edge's point or the vertex) and axis mask (estim.forward._contact._frame_of).
+struct Piece {
+  V3 anchor, mask;
+};
+
+Piece piece_of(const double* row) {
+  Piece out;
+  for (int i = 0; i < 3; ++i) {
+    const double m = row[DIRECTION + i], h = row[HALF + i];
+    out.anchor[i] = row[CENTRE + i] + m * (std::isfinite(h) ? h : 0.0);
+    out.mask[i] = std::fabs(m);
+  }
+  return out;
+}
+
+inline V3 mul(V3 a, V3 b) { return v3(a[0] * b[0], a[1] * b[1], a[2] * b[2]); }
+inline V3 cross(V3 a, V3 b) {
+  return v3(a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]);
+}
+
+// D and its derivatives along P(tau) = A + B tau + C tau^2 (estim.forward._curved._poly).
+struct Quartic {
+  V3 A, B, C;
+  double r;
+  struct Value {
+    double value, slope, curvature;
+  };
+  void at(double t, V3* P, V3* dP) const {
+    *P = (A + B * t) + (C * t) * t;
+    *dP = B + (2.0 * C) * t;
+  }
+  Value D(double t) const {
+    V3 P, dP;
+    at(t, &P, &dP);
+    return {inner(P, P) - r * r, 2.0 * inner(P, dP), 2.0 * (inner(dP, dP) + 2.0 * inner(P, C))};
+  }
+  Value dD(double t) const {  // halves of D', D'', D'''
+    V3 P, dP;
+    at(t, &P, &dP);
+    return {inner(P, dP), inner(dP, dP) + 2.0 * inner(P, C), 6.0 * inner(dP, C)};
+  }
+};
+
+// estim.forward._curved._bracketed_root
+template <typename F>
+double bracketed_root(const F& f, double lo, double hi) {
+  double f_lo = f(lo).value;
+  for (int i = 0; i < CURVED_BISECTIONS; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    const double f_mid = f(mid).value;
+    const bool right = (f_mid > 0) == (f_lo > 0);
+    const double new_lo = right ? mid : lo, new_hi = right ? hi : mid;
+    f_lo = right ? f_mid : f_lo;
+    lo = new_lo;
+    hi = new_hi;
+  }
+  const auto s = f(lo);
+  double t = s.value * s.curvature > 0 ? lo : hi;
+  for (int i = 0; i < CURVED_NEWTONS; ++i) {
+    const auto x = f(t);
+    const bool ok = x.slope != 0;
+    t = jmin(jmax(t - (ok ? x.value / (ok ? x.slope : 1.0) : 0.0), lo), hi);
+  }
+  return t;
+}
+
+// estim.forward._curved._quadratic_roots: real roots of a2 t^2 + a1 t + a0, NaN where none.
+void quadratic_roots(double a2, double a1, double a0, double* lo, double* hi) {
+  const double disc = a1 * a1 - 4.0 * a2 * a0;
+  const double s = std::sqrt(disc > 0 ? disc : 0.0);
+  const double q = -0.5 * (a1 + (a1 >= 0 ? s : -s));
+  const double safe_q = q != 0 ? q : 1.0;
+  const double r1 = q / (a2 != 0 ? a2 : 1.0), r2 = q != 0 ? a0 / safe_q : 0.0;
+  const bool real = (disc > 0) && (a2 != 0);
+  *lo = real ? jmin(r1, r2) : kNaN;
+  *hi = real ? jmax(r1, r2) : kNaN;
+}
+
+// estim.forward._curved._intervals: the interval ends start, the breaks inside (start,
+// horizon) sorted (the others moved to the horizon), horizon; N breaks, N + 1 intervals.
+template <int N>
+void intervals(const double* breaks, double start, double horizon, double* lo, double* hi) {
+  double pts[N];
+  for (int i = 0; i < N; ++i) {
+    const bool inside = std::isfinite(breaks[i]) && breaks[i] > start && breaks[i] < horizon;
+    pts[i] = inside ? breaks[i] : horizon;
+  }
+  std::sort(pts, pts + N);  // (no NaN: the same order as the JAX sorting network)
+  lo[0] = start;
+  for (int i = 0; i < N; ++i) lo[i + 1] = hi[i] = pts[i];
+  hi[N] = horizon;
+}
+
+// estim.forward._curved.entering_times: every time in (start, horizon] at which D falls
+// through zero, inf in unused slots (7 slots, in increasing order).
+void entering_times(const Quartic& q, double start, double horizon, double* roots) {
+  const V3 &A = q.A, &B = q.B, &C = q.C;
+  const double r = q.r;
+  const double c4 = inner(C, C);
+  const bool quartic = c4 > 0;
+  const double c4s = quartic ? c4 : 1.0;
+  const double c3 = 2.0 * inner(B, C), c2 = inner(B, B) + 2.0 * inner(A, C);
+  const double c1 = 2.0 * inner(A, B), c0 = inner(A, A) - r * r;
+  for (int i = 0; i < 7; ++i) roots[i] = kInf;
+  if (!quartic) {
+    // C = 0: D enters once, at its smaller root 2 c0 / (-c1 + s).
+    const double disc = c1 * c1 - 4.0 * c2 * c0;
+    const double s = std::sqrt(disc > 0 ? disc : 0.0);
+    const bool ok = (disc > 0) && (c0 > 0) && (c1 < 0);
+    const double flat = ok ? 2.0 * c0 / (ok ? s - c1 : 1.0) : kInf;
+    roots[0] = flat <= jmax(horizon, 0.0) ? flat : kInf;
+    return;
+  }
+  const double cauchy = 1.0 + jmax(jmax(std::fabs(c3), std::fabs(c2)), jmax(std::fabs(c1), std::fabs(c0))) / c4s;
+  const double T = jmax(jmin(horizon, cauchy), start);
+  const auto d = [&q](double t) { return q.dD(t); };
+  const auto D = [&q](double t) { return q.D(t); };
+  // 1. Critical points of D.
+  double sa, sb;
+  quadratic_roots(6.0 * c4s, 6.0 * inner(B, C), inner(B, B) + 2.0 * inner(A, C), &sa, &sb);
+  const double s0 = -inner(B, C) / (2.0 * c4s);
+  const double breaks1[3] = {sa, s0, sb};
+  double lo[7], hi[7];
+  intervals<3>(breaks1, start, T, lo, hi);
+  double breaks2[6];
+  for (int i = 0; i < 4; ++i) {
+    const bool change = (d(lo[i]).value > 0) != (d(hi[i]).value > 0);
+    breaks2[i] = change ? bracketed_root(d, lo[i], hi[i]) : kNaN;
+  }
+  breaks2[4] = sa;
+  breaks2[5] = sb;
+  // 2. Entering roots of D between them.
+  intervals<6>(breaks2, start, T, lo, hi);
+  for (int i = 0; i < 7; ++i) {
+    const bool enters = (D(lo[i]).value > 0) && (D(hi[i]).value <= 0) && (hi[i] > lo[i]);
+    roots[i] = enters ? bracketed_root(D, lo[i], hi[i]) : kInf;
+  }
+}
+
+// Whether the centre q lies in the Voronoi region of box piece `row` (estim.forward._contact.in_piece).
+bool in_piece(V3 q, const double* row) {
+  bool out = true;
+  for (int i = 0; i < 3; ++i) {
+    const double m = row[DIRECTION + i], c = row[CENTRE + i], h = row[HALF + i];
+    const double d = q[i] - c;
+    const bool beyond = m != 0 ? m * d - h >= -ON_FACE_TOL : true;
+    const bool within = m == 0 ? std::fabs(d) - h <= ON_FACE_TOL : true;
+    out = out && beyond && within;
+  }
+  return out;
+}
+
+// estim.forward._curved.distance_terms: A, B, C of P(tau) for a piece.
+Quartic distance_terms(V3 p, V3 v, V3 a, const Piece& pc, double r) {
+  return Quartic{mul(pc.mask, p - pc.anchor), mul(pc.mask, v), mul(0.5 * pc.mask, a), r};
+}
+
+// Earliest time the ball enters a curved piece within [start, horizon], inside its region;
+// 0 if it touches the piece and moves into it; inf if never (estim.forward._contact._curved_time).
+double curved_time(const Faces& fc, int face, V3 p, V3 v, V3 a, double start, double horizon) {
+  const double* row = fc.row(face);
+  const Quartic q = distance_terms(p, v, a, piece_of(row), fc.radius);
+  // _touching_terms: G = |P| - r and its first two derivatives at 0
+  const double rho = std::sqrt(inner(q.A, q.A));
+  const double rho_s = rho > 0 ? rho : 1.0;
+  const double g1 = inner(q.A, q.B) / rho_s;
+  const double g2 = (inner(q.B, q.B) + 2.0 * inner(q.A, q.C)) / rho_s - g1 * g1 / rho_s;
+  const double g0 = rho - q.r;
+  const bool touching = std::fabs(g0) <= POSITION_TOL;
+  if (touching && moves_into(g1, g2)) return 0.0;
+  double roots[8];
+  entering_times(q, start, horizon, roots + 1);
+  const bool low = touching && (g1 > 0) && (g2 < 0) && (g1 * g1 <= -2.0 * g2 * HOP_HEIGHT);
+  roots[0] = low ? -2.0 * g1 / (low ? g2 : -1.0) : kInf;
+  double out = kInf;
+  for (int i = 0; i < 8; ++i) {
+    if (!std::isfinite(roots[i])) continue;
+    if (in_piece(ballistic_p(p, v, a, roots[i]), row)) out = jmin(out, roots[i]);
+  }
+  return out;
+}
+
+// estim.forward._contact.parabola_box: the bounding box of the parabola over [0, h].
+void parabola_box(V3 p, V3 v, V3 a, double h, V3* lo, V3* hi) {
+  const V3 p1 = ballistic_p(p, v, a, h);
+  for (int i = 0; i < 3; ++i) {
+    const double apex = a[i] != 0 ? -v[i] / (a[i] != 0 ? a[i] : 1.0) : 0.0;
+    const bool inside = (apex > 0) && (apex < h);
+    const double t = inside ? apex : 0.0;
+    const double q_apex = p[i] + v[i] * t + 0.5 * a[i] * t * t;
+    (*lo)[i] = jmin(jmin(p[i], p1[i]), inside ? q_apex : p[i]);
+    (*hi)[i] = jmax(jmax(p[i], p1[i]), inside ? q_apex : p[i]);
+  }
+}
+
+// A piece's box of reach along axis i (estim.forward._contact._reach_box).
+void reach_box(const Faces& fc, int face, int i, double* lo, double* hi) {
+  const double* row = fc.row(face);
+  const double m = row[DIRECTION + i], c = row[CENTRE + i], half = row[HALF + i], r = fc.radius;
+  *lo = (m > 0 ? c + half : (m < 0 ? c - half - r : c - half)) - POSITION_TOL;
+  *hi = (m > 0 ? c + half + r : (m < 0 ? c - half : c + half)) + POSITION_TOL;
+}
+
+// estim.forward._contact._axis_window along one axis: the hull (t0, t1) of the times in
+// [0, horizon] the coordinate lies in [lo, hi].
+void axis_window(double p, double v, double a, double lo, double hi, double horizon, double* t0, double* t1) {
+  const double h = jmin(horizon, FAR_HORIZON);
+  double cands[6] = {0.0, h, 0, 0, 0, 0};
+  const double bounds[2] = {lo, hi};
+  for (int k = 0; k < 2; ++k) {
+    const double a2 = 0.5 * a, c0 = p - bounds[k];
+    const double disc = v * v - 4.0 * a2 * c0;
+    const double s = std::sqrt(disc >= 0 ? disc : 0.0);
+    const double q = -0.5 * (v + (v >= 0 ? s : -s));
+    const bool ok = disc >= 0;
+    cands[2 + 2 * k] = (ok && a2 != 0) ? q / (a2 != 0 ? a2 : 1.0) : kNaN;
+    cands[3 + 2 * k] = (ok && q != 0) ? c0 / (q != 0 ? q : 1.0) : kNaN;
+  }
+  const double margin = WINDOW_MARGIN * ((1.0 + std::fabs(lo)) + std::fabs(hi));
+  *t0 = kInf;
+  *t1 = -kInf;
+  for (double c : cands) {
+    const double t = std::isfinite(c) ? c : -1.0;
+    const double x = p + v * t + 0.5 * a * t * t;
+    const bool valid = (t >= 0) && (t <= h) && (x >= lo - margin) && (x <= hi + margin);
+    *t0 = jmin(*t0, valid ? t : kInf);
+    *t1 = jmax(*t1, valid ? t : -kInf);
+  }
+}
+
+// estim.forward._contact._reach_window: the time window within [0, horizon] in which the
+// parabola can be in the piece's box of reach, (t0, t1); empty if t0 > t1.
+void reach_window(const Faces& fc, int face, V3 p, V3 v, V3 a, double horizon, double* t0, double* t1) {
+  double lo[3], hi[3], w0[2], w1[2];
+  for (int i = 0; i < 3; ++i) reach_box(fc, face, i, lo + i, hi + i);
+  for (int i = 0; i < 2; ++i) axis_window(p[i], v[i], a[i], lo[i], hi[i], horizon, w0 + i, w1 + i);
+  const double s0 = jmax(jmax(w0[0], w0[1]), 0.0), s1 = jmin(w1[0], w1[1]);
+  const double z0 = p[2] + v[2] * s0 + 0.5 * a[2] * s0 * s0;
+  const double z1 = p[2] + v[2] * s1 + 0.5 * a[2] * s1 * s1;
+  const double apex = a[2] != 0 ? -v[2] / (a[2] != 0 ? a[2] : 1.0) : -1.0;
+  const bool at_apex = (apex > s0) && (apex < s1);
+  const double za = at_apex ? p[2] + v[2] * apex + 0.5 * a[2] * apex * apex : z0;
+  const double z_lo = jmin(jmin(z0, z1), za), z_hi = jmax(jmax(z0, z1), za);
+  const bool meets = (s0 <= s1) && (z_lo <= hi[2]) && (z_hi >= lo[2]);
+  *t0 = meets ? s0 : kInf;
+  *t1 = meets ? s1 : -kInf;
+}
+
+// The earliest contact with an edge or a corner within [0, horizon] (the earliest flat
+// face's time), the curved part of estim.forward._contact.first_contact: the pieces whose box of
+// reach the flight's bounding box meets, each within its window. time[f] for every piece.
+void curved_times(const Faces& fc, V3 p, V3 v, V3 a, int exclude, bool sliding, double horizon, double* time) {
+  const int F = fc.s->n_faces;
+  const double* own = fc.row(exclude > 0 ? exclude : 0);
+  V3 box_lo, box_hi;
+  parabola_box(p, v, a, jmin(horizon, FAR_HORIZON), &box_lo, &box_hi);
+  for (int f = fc.n_flat; f < F; ++f) {
+    time[f] = kInf;
+    const double* row = fc.row(f);
+    bool reaches = true;
+    for (int i = 0; i < 3 && reaches; ++i) {
+      double lo, hi;
+      reach_box(fc, f, i, &lo, &hi);
+      reaches = (box_lo[i] <= hi) && (box_hi[i] >= lo);
+    }
+    const double borders = (row[DIRECTION] * own[DIRECTION] + row[DIRECTION + 1] * own[DIRECTION + 1]) +
+                           row[DIRECTION + 2] * own[DIRECTION + 2];
+    const bool excluded = sliding && exclude >= 0 && borders == 1 && row[SOLID] == own[SOLID];
+    if (!reaches || f == exclude || excluded) continue;
+    double t0, t1;
+    reach_window(fc, f, p, v, a, horizon, &t0, &t1);
+    if (!(t0 <= t1)) continue;
+    time[f] = curved_time(fc, f, p, v, a, jmax(t0, 0.0), t1);
+  }
+}
+
+// Unit outward normal of face `face` at the centre q (estim.forward._contact.contact_normal).
+V3 contact_normal(const Faces& fc, int face, V3 q) {
+  if (fc.s->rank[face] < 2) return fc.normal(face);
+  const Piece pc = piece_of(fc.row(face));
+  const V3 P = mul(pc.mask, q - pc.anchor);
+  const double n = std::sqrt(inner(P, P)), d = n > 0 ? n : 1.0;
+  return v3(P[0] / d, P[1] / d, P[2] / d);
+}
+
+// Squared speed of v across curved piece `face` at normal n (estim.forward._contact.across_speed2).
+double across_speed2(const Faces& fc, int face, V3 v, V3 n) {
+  const double* row = fc.row(face);
+  const V3 along = v3(1.0 - std::fabs(row[DIRECTION]), 1.0 - std::fabs(row[DIRECTION + 1]),
+                      1.0 - std::fabs(row[DIRECTION + 2]));
+  const V3 tangential = v - inner(v, n) * n;
+  const bool edge = (along[0] + along[1]) + along[2] == 1;
+  const double a = inner(along, v);
+  return inner(tangential, tangential) - (edge ? a * a : 0.0);
+}
+
+// The horizontal line a ball pressed onto curved piece `face` rolls about
+// (estim.forward._contact.roll_axis): pivot, axis, and whether that is its motion.
+struct RollAxis {
+  V3 pivot, axis;
+  bool exact;
+};
+
+RollAxis roll_axis(const Faces& fc, int face, V3 p, V3 v) {
+  const double* row = fc.row(face);
+  const Piece pc = piece_of(row);
+  const bool edge = (pc.mask[0] + pc.mask[1]) + pc.mask[2] == 2;
+  const V3 flat = v3(1.0, 1.0, 0.0);
+  const V3 m = mul(load3(row + DIRECTION), flat);
+  const V3 d = mul(p - pc.anchor, flat), w = mul(v, flat);
+  const double d_len = std::sqrt(inner(d, d)), w_len = std::sqrt(inner(w, w));
+  V3 h;
+  if (d_len > 0) {
+    for (int i = 0; i < 3; ++i) h[i] = d[i] / (d_len > 0 ? d_len : 1.0);
+  } else {
+    for (int i = 0; i < 3; ++i) h[i] = w[i] / (w_len > 0 ? w_len : 1.0);
+  }
+  if (edge) {
+    const double norm = std::sqrt(jmax(inner(m, m), 1.0));
+    for (int i = 0; i < 3; ++i) h[i] = m[i] / norm;
+  }
+  if (!(inner(h, h) > 0)) h = v3(1.0, 0.0, 0.0);
+  const bool planar = std::fabs(d[0] * w[1] - d[1] * w[0]) <= AXIS_TOL * d_len * w_len;
+  return RollAxis{pc.anchor, cross(h, kUp), edge ? (pc.mask[2] == 1 && inner(m, m) == 1) : planar};
+}
+
+// Time at which a ball rolling about edge `face` reaches an end of the edge; inf on a
+// corner (estim.forward._contact.roll_exit_time).
+double roll_exit_time(const Faces& fc, int face, V3 pivot, V3 axis, V3 p, V3 v) {
+  const double* row = fc.row(face);
+  const double half = (row[HALF] * std::fabs(axis[0]) + row[HALF + 1] * std::fabs(axis[1])) +
+                      row[HALF + 2] * std::fabs(axis[2]);
+  const double along = inner(p - pivot, axis), u = inner(v, axis);
+  const bool moves = std::fabs(u) > SPEED_TOL;
+  const double end = u > 0 ? half : -half;
+  const double tau = (end - along) / (moves ? u : 1.0);
+  const Piece pc = piece_of(row);
+  const bool edge = ((1.0 - pc.mask[0]) + (1.0 - pc.mask[1])) + (1.0 - pc.mask[2]) == 1;
+  return (edge && moves) ? jmax(tau, 0.0) : kInf;
+}
+
+// The piece of the same box a ball rolling on `face` moves onto when it leaves that piece's
+// region across `axis` with velocity v (estim.forward._contact.next_piece): -1 if none.
+int next_piece(const Faces& fc, int face, int axis, V3 v) {
+  const double* row = fc.row(face);
+  double target[3];
+  bool nonzero = false;
+  for (int i = 0; i < 3; ++i) {
+    const double m = row[DIRECTION + i];
+    const double sign = v[axis] > 0 ? 1.0 : (v[axis] < 0 ? -1.0 : 0.0);  // (jnp.sign of v . e)
+    target[i] = i == axis ? (m == 0 ? sign : 0.0) : m;
+    nonzero = nonzero || target[i] != 0;
+  }
+  if (!nonzero) return -1;
+  for (int f = 0; f < fc.s->n_faces; ++f) {
+    const double* r = fc.row(f);
+    if (r[DIRECTION] == target[0] && r[DIRECTION + 1] == target[1] && r[DIRECTION + 2] == target[2] &&
+        r[SOLID] == row[SOLID])
+      return f;
+  }
+  return -1;
+}
+
+// ---------------------------------------------------------------------------------------
+// A ball rolling over an edge or a corner (estim.forward._roll; its docstring has the maths).
+
+// estim.forward._roll.carlson_rf
+inline double carlson_rf(double x, double y, double z) {
+  for (int i = 0; i < RF_STEPS; ++i) {
+    const double sx = std::sqrt(x), sy = std::sqrt(y), sz = std::sqrt(z);
+    const double lam = sx * (sy + sz) + sy * sz;
+    x = 0.25 * (x + lam);
+    y = 0.25 * (y + lam);
+    z = 0.25 * (z + lam);
+  }
+  const double mean = (x + y + z) / 3.0;
+  const double dx = 1.0 - x / mean, dy = 1.0 - y / mean;
+  const double dz = -(dx + dy);
+  const double e2 = dx * dy - dz * dz;
+  const double e3 = dx * dy * dz;
+  return (1.0 + e2 * (e2 / 24.0 - 0.1 - 3.0 * e3 / 44.0) + e3 / 14.0) / std::sqrt(mean);
+}
+
+// estim.forward._roll.Pendulum (jnp.where: only the selected side is computed).
+struct Pendulum {
+  double k = 0.0, sqrt_k = 0.0;
+  bool rests = false, positive = false;
+  double beta = 0.0, b = 0.0, sigma = 1.0, w0 = 0.0, t0 = 0.0, w_end = 0.0;
+  bool reaches_top = false;
+  double duration = 0.0;
+
+  Pendulum() = default;
+  Pendulum(double s0, double omega0, double k_) : k(k_), sqrt_k(std::sqrt(k_)) {
+    double B = omega0 * omega0 - 4.0 * k * s0 * s0;
+    rests = (B == 0.0) && (s0 == 0.0);
+    B = B == 0.0 ? RIDGE_B * k : B;
+    positive = B > 0;
+    beta = std::sqrt(std::fabs(B));
+    b = beta / (2.0 * sqrt_k);
+    sigma = omega0 < 0 ? -1.0 : 1.0;
+    const double sinh0 = (positive ? 2.0 * sqrt_k * sigma * s0 : omega0) / beta;
+    w0 = std::asinh(sinh0);
+    t0 = time(w0);
+    const double s_star = std::sqrt(jmax((k - B) / (6.0 * k), 0.0));
+    const bool inwards = positive && (sigma < 0);
+    const double ratio = s_star / b;
+    const double w_star = positive ? std::asinh(ratio) : std::acosh(jmax(ratio, 1.0));
+    w_end = jmax(inwards ? 0.0 : w_star, w0);
+    reaches_top = inwards;
+    duration = rests ? kInf : time(w_end) - t0;
+  }
+
+  // Pendulum.half_sine
+  double half_sine(double w) const { return positive ? sigma * b * std::sinh(w) : b * std::cosh(w); }
+
+  // Pendulum.rate
+  double rate(double w) const { return positive ? sigma * beta * std::cosh(w) : beta * std::sinh(w); }
+
+  // Pendulum._time
+  double time(double w) const {
+    const double s = half_sine(w);
+    const double ch = std::cosh(w);
+    const double c2 = ch * ch;
+    const double one_b2 = 1.0 - b * b;
+    const double y = positive ? c2 : jmax(one_b2, 0.0);
+    const double z = positive ? 1.0 : one_b2 * c2;
+    return std::sinh(w) * carlson_rf(1.0 - s * s, y, z) / sqrt_k;
+  }
+
+  // Pendulum.angle_at (the last, differentiable Newton step of JAX is one more step here)
+  double angle_at(double tau) const {
+    const double target = t0 + tau;
+    const double lo = w0, hi = w_end;
+    double w = w0 + sqrt_k * tau;
+    for (int i = 0; i <= ROLL_NEWTONS; ++i) {
+      const double s = half_sine(w);
+      const double f = time(w) - target, slope = sqrt_k * std::sqrt(1.0 - s * s);
+      const double next = w - f * slope;
+      w = i < ROLL_NEWTONS ? jmin(jmax(next, lo), hi) : next;  // (the last: unclipped)
+    }
+    return w;
+  }
+};
+
+// estim.forward._roll.Roll
+struct Roll {
+  V3 pivot, axis, out;
+  double along, u, r;
+  Pendulum motion;
+
+  Roll(V3 pivot_, V3 axis_, V3 p0, V3 v0, double g) : pivot(pivot_), axis(axis_) {
+    const V3 d = p0 - pivot;
+    along = inner(d, axis);
+    u = inner(v0, axis);
+    const V3 arm = d - along * axis;
+    r = std::sqrt(inner(arm, arm));
+    out = cross(kUp, axis);
+    const double theta = std::atan2(inner(arm, out), arm[2]);
+    const double omega = inner(v0, std::cos(theta) * out - std::sin(theta) * kUp) / r;
+    motion = Pendulum(std::sin(0.5 * theta), omega, g / r);
+  }
+
+  // Roll.duration
+  double duration() const { return motion.duration; }
+
+  // Roll.reaches_top
+  bool reaches_top() const { return motion.reaches_top; }
+
+  // Roll.state
+  void state(double tau, V3* p, V3* v) const {
+    const double end = std::isfinite(motion.duration) ? motion.duration : tau;
+    const double w = motion.angle_at(motion.rests ? 0.0 : jmin(jmax(tau, 0.0), end));
+    const double s = motion.rests ? 0.0 : motion.half_sine(w);
+    const double rate = motion.rests ? 0.0 : motion.rate(w);
+    const double cos_t = 1.0 - 2.0 * s * s;
+    const double sin_t = 2.0 * s * std::sqrt(jmax(1.0 - s * s, 0.0));
+    const V3 base = pivot + (along + u * tau) * axis;
+    *p = base + r * (sin_t * out + cos_t * kUp);
+    *v = u * axis + r * rate * (cos_t * out - sin_t * kUp);
+  }
+};
+
 struct Candidate {
   double tau;
   int32_t order;
@@ -296,8 +785,9 @@ struct ContactSearch {
   std::vector<double> bound;  // per solid
   std::vector<double> time;   // per face
 
-  std::pair<double, int> operator()(const Faces& fc, V3 p, V3 v, V3 a, int exclude) {
-    const int F = fc.s->n_faces;
+  // `sliding`: the ball slides on `exclude`, and meets none of its edges and corners.
+  std::pair<double, int> operator()(const Faces& fc, V3 p, V3 v, V3 a, int exclude, bool sliding) {
+    const int F = fc.n_flat;
     found.clear();
     const bool broad = !fc.first.empty();
     const int groups = broad ? fc.s->n_solids : 1;
@@ -329,7 +819,20 @@ struct ContactSearch {
       }
       best = resolve(fc, p, v, a);
     }
-    return best;
+    if (fc.n_flat == fc.s->n_faces) return best;
+    // Edges and corners reached before the earliest flat face; ties to the lowest rank,
+    // then index, over the faces and the pieces (no blocking: estim.forward._contact.first_contact).
+    time.resize(fc.s->n_faces);
+    curved_times(fc, p, v, a, exclude, sliding, best.first, time.data());
+    double t_min = best.first;
+    for (int f = fc.n_flat; f < fc.s->n_faces; ++f) t_min = jmin(t_min, time[f]);
+    if (!std::isfinite(t_min)) return {t_min, -1};
+    int32_t pick = std::numeric_limits<int32_t>::max();
+    for (const Candidate& x : found)
+      if (x.tau <= t_min + TIE_TIME) pick = std::min(pick, x.order);
+    for (int f = fc.n_flat; f < fc.s->n_faces; ++f)
+      if (time[f] <= t_min + TIE_TIME) pick = std::min(pick, fc.order[f]);
+    return {t_min, pick % fc.s->n_faces};
   }
 
   // The earliest candidate, ties to the lowest order, dropping up to three that are
@@ -617,9 +1120,9 @@ struct Segment {
   double t0;
   V3 p0, v0, acc;
   double t1;
-  V3 p1, v1, v1_post, normal;
+  V3 p1, v1, v1_post, normal, pivot;  // normal: a TRAIN's face, a ROLL's axis; pivot: a ROLL's
 };
-constexpr int SEGMENT_NUMBERS = 23;
+constexpr int SEGMENT_NUMBERS = 26;
 
 void write_segment(const Segment& s, double* o) {
   o[0] = s.t0;
@@ -631,6 +1134,7 @@ void write_segment(const Segment& s, double* o) {
     o[14 + i] = s.v1[i];
     o[17 + i] = s.v1_post[i];
     o[20 + i] = s.normal[i];
+    o[23 + i] = s.pivot[i];
   }
   o[10] = s.t1;
 }
@@ -664,35 +1168,49 @@ void slide_frame(const Faces& fc, int32_t support, V3 v, V3 a, V3* sv, V3* sa) {
 }
 
 // How the segment starting at st ends: (reason, face).
+// tau: the time to the contact the search found (read by advance on an edge or a corner).
 void decide_end(const Faces& fc, const Ball& b, const Step& st, double t_end, ContactSearch& search,
-                int32_t* reason, int32_t* face) {
+                int32_t* reason, int32_t* face, double* tau) {
   const V3 a = v3(0.0, 0.0, -1.0) * fc.s->gravity;
   if (st.kind == TRAIN) {
     const Series s = series(st.v, fc.normal(support_face(st.support)), a);
     const double duration = s.period * geometric_sum(b.rates.by_e, st.n);  // series_end(s, st.n).t
     *reason = st.t + duration >= t_end ? END : (std::isfinite(st.n) ? BOUNCES : SETTLE);
     *face = -1;
+    *tau = kInf;
+    return;
+  }
+  if (st.kind == ROLL) {
+    const int sup = support_face(st.support);
+    const RollAxis ax = roll_axis(fc, sup, st.p, st.v);
+    const double ends = jmin(Roll(ax.pivot, ax.axis, st.p, st.v, fc.s->gravity).duration(),
+                             roll_exit_time(fc, sup, ax.pivot, ax.axis, st.p, st.v));
+    *reason = st.t + ends >= t_end ? END : EXIT;
+    *face = -1;
+    *tau = kInf;
     return;
   }
   const bool sliding = st.kind == SLIDE;
   V3 v0 = st.v, acc = a;
   if (sliding) slide_frame(fc, st.support, st.v, a, &v0, &acc);
-  const auto [tau_c, f] = search(fc, st.p, v0, acc, st.support);
+  const auto [tau_c, f] = search(fc, st.p, v0, acc, st.support, sliding);
   const double tau_x = sliding ? slide_exit_time(fc, support_face(st.support), st.p, v0, acc) : kInf;
   const double tau_b = jmin(tau_c, tau_x);
   *reason = st.t + tau_b >= t_end ? END : (tau_c <= tau_x ? CONTACT : EXIT);
   *face = *reason == CONTACT ? f : -1;
+  *tau = tau_c;
 }
 
-// Carry the state through one segment with structure d.
-Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& d, double t_end) {
+// Carry the state through one segment with structure d. found: the contact time the
+// search found (on an edge or a corner it is the contact's time: not searched again).
+Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& d, double t_end, double found) {
   const V3 a = v3(0.0, 0.0, -1.0) * fc.s->gravity;
   Segment seg;
   seg.t0 = st.t;
   seg.p0 = st.p;
   seg.v0 = st.v;
   seg.acc = a;
-  seg.normal = kZero;
+  seg.normal = seg.pivot = kZero;
   if (d.kind == UNUSED) {
     seg.t1 = st.t;
     seg.p1 = st.p;
@@ -720,32 +1238,55 @@ Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& 
     seg.normal = n_sup;
     return seg;
   }
+  if (d.kind == ROLL) {
+    const int sup = support_face(d.support);
+    const RollAxis ax = roll_axis(fc, sup, st.p, st.v);
+    const Roll motion(ax.pivot, ax.axis, st.p, st.v, fc.s->gravity);
+    const double ends = jmin(motion.duration(), roll_exit_time(fc, sup, ax.pivot, ax.axis, st.p, st.v));
+    const double tau_r = d.reason == END ? t_end - st.t : (std::isfinite(ends) ? ends : 0.0);
+    motion.state(tau_r, &seg.p1, &seg.v1);
+    seg.v1_post = seg.v1;
+    seg.t1 = st.t + tau_r;
+    seg.normal = ax.axis;
+    seg.pivot = ax.pivot;
+    return seg;
+  }
   if (d.kind == SLIDE) slide_frame(fc, d.support, st.v, a, &seg.v0, &seg.acc);
   const int face = d.face > 0 ? d.face : 0;
+  const bool curved = fc.s->rank[face] >= 2;
   double tau_b;
-  if (d.reason == CONTACT) tau_b = face_entering_time(fc, face, st.p, seg.v0, seg.acc);
+  if (d.reason == CONTACT && curved) tau_b = std::isfinite(found) && found > 0 ? found : 0.0;
+  else if (d.reason == CONTACT) tau_b = face_entering_time(fc, face, st.p, seg.v0, seg.acc);
   else if (d.reason == EXIT) tau_b = slide_exit_time(fc, support_face(d.support), st.p, seg.v0, seg.acc);
   else tau_b = t_end - st.t;
   if (!std::isfinite(tau_b)) tau_b = 0.0;
   seg.p1 = ballistic_p(st.p, seg.v0, seg.acc, tau_b);
   seg.v1 = ballistic_v(seg.v0, seg.acc, tau_b);
-  seg.v1_post = d.reason == CONTACT ? contact_velocity(seg.v1, fc.normal(face), a, b.rates) : seg.v1;
+  seg.v1_post = d.reason == CONTACT ? contact_velocity(seg.v1, contact_normal(fc, face, seg.p1), a, b.rates) : seg.v1;
   seg.t1 = st.t + tau_b;
   return seg;
 }
 
-// Kind, support and bounce count of the segment that follows seg.
-void next_structure(const Faces& fc, const Ball& b, const Segment& seg, const Decision& d, Step* next) {
+// Kind, support and bounce count of the segment that follows seg; false where the ball
+// cannot go on (a roll over a corner out of a vertical plane through its vertex, or over an
+// edge that is not horizontal: not followed, as in estim.forward._solver._next_structure).
+bool next_structure(const Faces& fc, const Ball& b, const Segment& seg, const Decision& d, Step* next) {
   const double e = b.e, g = fc.s->gravity;
   const V3 a = v3(0.0, 0.0, -1.0) * g;
   const int face = d.face > 0 ? d.face : 0;
-  const V3 n_face = fc.normal(face);
+  const V3 n_face = contact_normal(fc, face, seg.p1);
   const V3 post = seg.v1_post;
-  const bool settled = (std::fabs(inner(post, n_face)) <= REST_SPEED) && (inner(n_face, a) < 0);
-  const bool up = n_face[2] > 1.0 - AXIS_TOL;
-  const bool inclined = (inner(n_face, a) < 0) && !up && (e < 1);  // FactorLaw.accumulates
+  // On an edge or a corner (exact geometry) a ball without normal speed rolls over it where
+  // gravity presses it on more than its motion across the curve pulls it off.
+  const bool curved = fc.s->rank[face] >= 2 && d.reason == CONTACT;
+  const bool touches = std::fabs(inner(post, n_face)) <= REST_SPEED;
+  const bool settled = touches && (inner(n_face, a) < 0) && !curved;
+  const bool rolls = curved && touches && (inner(n_face, a) + across_speed2(fc, face, post, n_face) / fc.radius < 0);
+  const bool grazed = curved && touches;
+  const bool up = n_face[2] > 1.0 - AXIS_TOL && !curved;
+  const bool inclined = (inner(n_face, a) < 0) && !up && !curved && (e < 1);  // FactorLaw.accumulates
   const V3 if_support = fc.normal(support_face(d.support));
-  const bool stays = (d.kind == SLIDE) && (std::fabs(inner(n_face, if_support)) < AXIS_TOL);
+  const bool stays = (d.kind == SLIDE) && (std::fabs(inner(n_face, if_support)) < AXIS_TOL) && !curved;
   // (Only a contact after which the ball neither stays on its face nor settles can start
   // a train: only then is its bounce count needed.)
   const bool may_train = d.reason == CONTACT && !stays && !settled;
@@ -770,7 +1311,8 @@ void next_structure(const Faces& fc, const Ball& b, const Segment& seg, const De
     const double y = speed > 0 ? reach / (speed > 0 ? speed * t_flight : 1.0) : kInf;
     n_train = reach < 0 ? 0.0 : geometric_count(b.rates.by_emu, y);  // FactorLaw.landings_within
   }
-  const int32_t after_kind = (stays || settled) ? SLIDE : (((up || inclined) && n_train >= 1) ? TRAIN : FLIGHT);
+  int32_t after_kind = (stays || settled) ? SLIDE : (((up || inclined) && n_train >= 1) ? TRAIN : FLIGHT);
+  after_kind = rolls ? ROLL : after_kind;
   const int32_t after_support = stays ? d.support : face;
   int32_t kind, support;
   switch (d.reason) {
@@ -780,13 +1322,39 @@ void next_structure(const Faces& fc, const Ball& b, const Segment& seg, const De
     case EXIT: kind = FLIGHT; support = d.support; break;
     default: kind = FLIGHT; support = -1; break;
   }
-  if (!(kind == TRAIN || kind == SLIDE || d.reason == EXIT)) support = -1;
+  const bool keeps = kind == TRAIN || kind == SLIDE || kind == ROLL || d.reason == EXIT ||
+                     (d.reason == CONTACT && grazed);
+  if (!keeps) support = -1;
+  bool goes_on = true;
+  if (rolls || d.kind == ROLL) {
+    // A ball that starts to roll rolls about a horizontal line where that is its motion;
+    // one whose roll reaches the end of its edge goes on over the corner there.
+    bool onto = false;
+    int corner = -1;
+    if (d.kind == ROLL && d.reason == EXIT) {
+      const int sup = support_face(d.support);
+      const RollAxis ax = roll_axis(fc, sup, seg.p0, seg.v0);
+      const bool at_end = roll_exit_time(fc, sup, ax.pivot, ax.axis, seg.p1, seg.v1) <= TIE_TIME;
+      const double* row = fc.row(sup);
+      int free = 0;  // (an edge's axis: the first of least |m|)
+      for (int i = 1; i < 3; ++i) free = std::fabs(row[DIRECTION + i]) < std::fabs(row[DIRECTION + free]) ? i : free;
+      corner = next_piece(fc, sup, free, seg.v1);
+      onto = at_end && corner >= 0;
+    }
+    const bool followed = roll_axis(fc, onto ? corner : face, seg.p1, onto ? seg.v1 : post).exact;
+    if (onto) {
+      kind = ROLL;
+      support = corner;
+    }
+    goes_on = !(rolls || onto) || followed;
+  }
   next->t = seg.t1;
   next->p = seg.p1;
   next->v = seg.v1_post;
   next->kind = kind;
   next->support = support;
   next->n = kind == TRAIN ? n_train : 0.0;
+  return goes_on;
 }
 
 struct Plan {
@@ -803,19 +1371,20 @@ void plan(const Faces& fc, const Ball& b, double t_end, int S, Plan* out, Contac
   out->segments.resize(S);
   Step st{0.0, b.position, b.velocity, FLIGHT, -1, 0.0};
   int k = 0;
-  bool done = false;
-  while (k < S && !done) {
+  int done = 0;  // 1: at t_end; -1: cannot go on
+  while (k < S && done == 0) {
     Decision d{st.kind, st.support, st.n, END, -1};
-    decide_end(fc, b, st, t_end, search, &d.reason, &d.face);
-    const Segment seg = advance(fc, b, st, d, t_end);
+    double found;
+    decide_end(fc, b, st, t_end, search, &d.reason, &d.face, &found);
+    const Segment seg = advance(fc, b, st, d, t_end, found);
     out->decisions[k] = d;
     out->segments[k] = seg;
-    next_structure(fc, b, seg, d, &st);
+    const bool goes_on = next_structure(fc, b, seg, d, &st);
     ++k;
-    done = d.reason == END;
+    done = goes_on ? (d.reason == END ? 1 : 0) : -1;
   }
   out->n_segments = k;
-  out->complete = done;
+  out->complete = done == 1;
 }
 
 // The unused slots of a plan as estim.forward._solver.plan leaves them: unused decisions, and
@@ -829,7 +1398,7 @@ void pad(Plan* pl) {
     f.t0 = f.t1 = last.t1;
     f.p0 = f.p1 = last.p1;
     f.v0 = f.v1 = f.v1_post = last.v1_post;
-    f.acc = f.normal = kZero;
+    f.acc = f.normal = f.pivot = kZero;
   }
 }
 
@@ -839,11 +1408,11 @@ void pad(Plan* pl) {
 bool inside_solid(const Faces& fc, V3 p, double r, bool path) {
   const Scene& sc = *fc.s;
   const double limit = r - INSIDE_DEPTH;
-  // The seed's geometry (the only one the kernels run, estim.forward._native.supports): a
-  // box is entered beyond one of its faces only, not beyond two or three at once; along a
-  // path, only where the centre is inside the box itself (a ball passes corners).
+  // Exact geometry: closer than r to the box. The seed's: a box is entered beyond one of
+  // its faces only, not beyond two or three at once; along a path, only where the centre
+  // is inside the box itself (a ball passes corners).
   for (int b = 0; b < sc.n_boxes; ++b) {
-    double depth = 0.0, gap_max = -kInf;
+    double depth = 0.0, gap_max = -kInf, squares = 0.0;
     int beyond = 0;
     for (int i = 0; i < 3; ++i) {
       const double gap = std::fabs(p[i] - sc.centre[b * 3 + i]) - sc.half[b * 3 + i];
@@ -851,8 +1420,10 @@ bool inside_solid(const Faces& fc, V3 p, double r, bool path) {
       gap_max = jmax(gap_max, gap);
       beyond += excess > 0.0;
       depth = depth + excess;
+      squares = squares + excess * excess;
     }
-    if (path ? gap_max < -INSIDE_DEPTH : (beyond <= 1 && depth < limit)) return true;
+    if (sc.exact ? std::sqrt(squares) < limit : (path ? gap_max < -INSIDE_DEPTH : (beyond <= 1 && depth < limit)))
+      return true;
   }
   for (int k = 0; k < sc.n_planes; ++k) {
     const double height = p[0] * sc.p_normal[k * 3] + p[1] * sc.p_normal[k * 3 + 1] + p[2] * sc.p_normal[k * 3 + 2];
@@ -867,8 +1438,10 @@ bool stays_outside(const Faces& fc, double r, const Plan& pl) {
   if (pl.n_segments > 0 && inside_solid(fc, pl.segments[0].p0, r, true)) return false;
   for (int k = 0; k < pl.n_segments; ++k) {
     const Segment& s = pl.segments[k];
-    const bool middle_inside =
-        pl.decisions[k].kind != TRAIN && inside_solid(fc, ballistic_p(s.p0, s.v0, s.acc, 0.5 * (s.t1 - s.t0)), r, true);
+    const double half = 0.5 * (s.t1 - s.t0);
+    V3 middle = ballistic_p(s.p0, s.v0, s.acc, half), v;
+    if (pl.decisions[k].kind == ROLL) Roll(s.pivot, s.normal, s.p0, s.v0, fc.s->gravity).state(half, &middle, &v);
+    const bool middle_inside = pl.decisions[k].kind != TRAIN && inside_solid(fc, middle, r, true);
     if (middle_inside || inside_solid(fc, s.p1, r, true)) return false;
   }
   return true;
@@ -885,7 +1458,9 @@ void sample(const Plan& pl, const Rates& c, double g, double t, V3* p, V3* v) {
   const int k = count > 0 ? count - 1 : 0;
   const Segment& s = pl.segments[k];
   const double tau = t - s.t0;
-  if (pl.decisions[k].kind == TRAIN) {
+  if (pl.decisions[k].kind == ROLL) {
+    Roll(s.pivot, s.normal, s.p0, s.v0, g).state(tau, p, v);
+  } else if (pl.decisions[k].kind == TRAIN) {
     const V3 a = v3(0.0, 0.0, -1.0) * g;
     const bool is_train = inner(s.v0, s.normal) > 0;
     const V3 normal = is_train ? s.normal : kUp;
@@ -1095,7 +1670,7 @@ const ffi::NativeType<T>* at(const Outer& outer, const ffi::Buffer<T>& b, int64_
 struct SceneBuffers {
   ffi::Buffer<ffi::F64> numbers;
   ffi::Buffer<ffi::S32> integers;
-  ffi::Span<const int64_t> counts;  // faces, solids, boxes, planes
+  ffi::Span<const int64_t> counts;  // faces, solids, boxes, planes, exact geometry (0, 1)
 
   int64_t faces() const { return counts[0]; }
   int64_t solids() const { return counts[1]; }
@@ -1106,7 +1681,7 @@ struct SceneBuffers {
   int64_t n_integers() const { return faces() * (1 + LOWER); }  // rank, lower
 
   bool fit(const Outer& outer) const {
-    if (counts.size() != 4) return false;
+    if (counts.size() != 5) return false;
     for (int64_t c : counts)
       if (c < 0) return false;
     const auto nd = numbers.dimensions(), id = integers.dimensions();
@@ -1134,6 +1709,7 @@ struct SceneBuffers {
     s.p_normal = next(planes() * 3);
     s.p_offset = next(planes());
     s.gravity = *next(1);
+    s.exact = counts[4] != 0;
     const int32_t* k = at(outer, integers, o);
     s.rank = k;
     s.lower = k + faces();
@@ -1359,6 +1935,7 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
       put3(SEG_V1, k, s.v1);
       put3(SEG_V1_POST, k, s.v1_post);
       put3(SEG_NORMAL, k, s.normal);
+      put3(SEG_PIVOT, k, s.pivot);
       put_int(DEC_KIND, k, d.kind);
       put_int(DEC_SUPPORT, k, d.support);
       put(DEC_N, k, d.n);
@@ -1370,8 +1947,7 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
     for (Field f : {SEG_T0, SEG_T1}) fill(f, n, S, last.t1);
     for (Field f : {SEG_P0, SEG_P1}) fill3(f, n, S, last.p1);
     for (Field f : {SEG_V0, SEG_V1, SEG_V1_POST}) fill3(f, n, S, last.v1_post);
-    for (Field f : {SEG_ACC, SEG_NORMAL}) fill(f, 3 * n, 3 * S, 0.0);
-    fill(SEG_PIVOT, 0, 3 * S, 0.0);  // (no rolls: the seed's geometry has no edges)
+    for (Field f : {SEG_ACC, SEG_NORMAL, SEG_PIVOT}) fill(f, 3 * n, 3 * S, 0.0);
     fill_int(DEC_KIND, n, S, UNUSED);
     fill_int(DEC_SUPPORT, n, S, -1);
     fill(DEC_N, n, S, 0.0);

@@ -44,7 +44,7 @@ from .._config import keep_loop
 from ..model._scene import Scene
 from . import _constants
 from ._balls import ball_parts, flat_params, map_balls, param_rows
-from ._contact import faces_for
+from ._contact import faces_for, has_edges
 from ._record import Layout, layout_of, pack
 from ._solver import Decision, Plan, Segment
 from ._trajectory import KEEP, ClosedFormSolution, Events, State, trajectory_parts
@@ -71,9 +71,9 @@ FIELDS = (
     "solution.structure.reason", "solution.structure.face",
     "solution.coefficients.e", "solution.coefficients.mu_t",
 )
-# Numbers per segment in the plan kernel's output: t0, p0, v0, acc, t1, p1, v1, v1_post, normal.
+# Numbers per segment in the plan kernel's output: t0, p0, v0, acc, t1, p1, v1, v1_post, normal, pivot.
 _SEGMENT = (("t0", 1), ("p0", 3), ("v0", 3), ("acc", 3), ("t1", 1), ("p1", 3), ("v1", 3), ("v1_post", 3),
-            ("normal", 3))
+            ("normal", 3), ("pivot", 3))
 
 # Whether estim uses the kernels where it can (tests switch it to compare both paths).
 ENABLED = os.environ.get("ESTIM_NATIVE", "1") != "0"
@@ -108,11 +108,10 @@ def active() -> bool:
 def supports(law: AbstractContactLaw, scene: Scene) -> bool:
     """Whether the kernels compute the closed-form path of ``scene`` under ``law``: the
     seed's factor law (``estim.forward.laws.FactorLaw``, the only law they implement) in a
-    scene without air (a scene with air takes the ODE path) and with the seed's geometry
-    (the kernels have no edges or corners: exact geometry runs on the JAX planner, its cost
-    in ``docs/pages/speed.md``). Anything else runs on the JAX planner, with the same
-    results."""
-    return isinstance(law, FactorLaw) and scene.air is None and scene.geometry == "seed"
+    scene without air (a scene with air takes the ODE path), in either geometry (the
+    seed's, or exact edges and corners with their rolls). Anything else runs on the JAX
+    planner, with the same results."""
+    return isinstance(law, FactorLaw) and scene.air is None
 
 
 def runs(scene: Scene) -> bool:
@@ -126,7 +125,7 @@ def _check_supported(scene: Scene) -> None:
     if not supports(law, scene):
         raise ValueError(
             f"the native kernels do not support the contact law {type(law).__name__} in this scene "
-            "(estim.forward._native.supports: the factor law without air, the seed's geometry); use the JAX planner "
+            "(estim.forward._native.supports: the factor law without air); use the JAX planner "
             "(estim.forward._solver.plan), which estim.forward._native.runs(scene) chooses"
         )
 
@@ -142,13 +141,14 @@ def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
     radius 0: the kernels grow it by each ball's radius), the solids and gravity, as two
     arrays (numbers, integers: each array flattened, one after the other, in the order of
     the kernel's ``SceneBuffers``), and the counts of faces, solids, boxes and planes that
-    say where each begins (the kernel's ``counts`` attribute)."""
+    say where each begins, and whether the geometry is exact (the kernel's ``counts``
+    attribute)."""
     faces = faces_for(scene, jnp.float64(0.0))
     numbers = (faces.row, faces.growth, faces.box_lo, faces.box_hi, scene.box_centre, scene.box_half,
                scene.plane_normal, scene.plane_offset, scene.gravity)
     integers = (faces.rank, faces.lower)
     counts = np.array([faces.growth.shape[0], faces.box_lo.shape[0], scene.box_centre.shape[0],
-                       scene.plane_offset.shape[0]], dtype=np.int64)
+                       scene.plane_offset.shape[0], scene.geometry == "exact"], dtype=np.int64)
     join = lambda xs, dtype: jnp.concatenate([jnp.ravel(x).astype(dtype) for x in xs])  # noqa: E731
     return (join(numbers, jnp.float64), join(integers, jnp.int32)), counts
 
@@ -176,7 +176,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
         return jax.ShapeDtypeStruct(shape, dtype)
 
     shapes = (out((n, S), jnp.int32), out((n, S), jnp.int32), out((n, S), jnp.float64), out((n, S), jnp.int32),
-              out((n, S), jnp.int32), out((n, S, 23), jnp.float64), out((n,), jnp.int32), out((n,), jnp.bool_))
+              out((n, S), jnp.int32), out((n, S, 26), jnp.float64), out((n,), jnp.int32), out((n,), jnp.bool_))
     call = jax.ffi.ffi_call("estim_plan", shapes, vmap_method="expand_dims")
     (scene_numbers, scene_integers), counts = _scene_operands(scene)
     kind, support, count, reason, face, numbers, n_segments, complete = call(
@@ -190,15 +190,16 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
         return x.reshape(batch + x.shape[1:])
 
     decisions = Decision(kind, support, count, reason, face)
-    columns["pivot"] = jnp.zeros_like(columns["normal"])  # (no rolls: the kernels run the seed's geometry)
     return Plan(decisions=jax.tree.map(unflat, decisions), segments=jax.tree.map(unflat, Segment(**columns)),
                 n_segments=unflat(n_segments), complete=unflat(complete))
 
 
 @functools.lru_cache(maxsize=64)
-def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: frozenset[str]) -> Layout:
+def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: frozenset[str],
+                      rolls: bool = False) -> Layout:
     """The layout of one ball's Trajectory rows (``estim.forward._record``), as the JAX path packs
-    them: built from placeholder parts of the right shapes and dtypes."""
+    them: built from placeholder parts of the right shapes and dtypes. ``rolls``: whether the
+    scene has edges and corners (``estim.forward._contact.has_edges``)."""
     S, E = max_segments, max_events
 
     def f64(*shape):
@@ -215,7 +216,7 @@ def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: fr
     structure = Decision(i32(S), i32(S), f64(S), i32(S), i32(S))
     # (The kernels' law: the JAX path's layout for a scene they support.)
     solution = ClosedFormSolution(segments=segments, structure=structure, law=FactorLaw(),
-                                  coefficients=FactorCoefficients(f64(), f64()), gravity=f64())
+                                  coefficients=FactorCoefficients(f64(), f64()), gravity=f64(), rolls=rolls)
     parts = trajectory_parts(f64(n_times, 3), f64(n_times, 3), events, final, flag, solution, keep)
     return layout_of(parts, 0)
 
@@ -248,7 +249,7 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
     _register()
     batch = params.batch_shape
     n = math.prod(batch)
-    layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep)
+    layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep, has_edges(scene))
     shapes = (jax.ShapeDtypeStruct((n, layout.n_numbers), jnp.float64),
               jax.ShapeDtypeStruct((n, layout.n_integers), jnp.int32))
     call = jax.ffi.ffi_call("estim_trajectory", shapes, vmap_method="expand_dims")
@@ -277,7 +278,7 @@ def _trajectory_rows_jvp(max_segments, max_events, keep, checks, messages, prima
     numbers, integers = trajectory_rows(scene, params, t_end, ts, max_segments, max_events, keep, checks, messages)
     plans = plan(scene, params, t_end, max_segments)
     plans = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(params.batch_shape):]), plans)
-    layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep)
+    layout = trajectory_layout(ts.shape[0], max_segments, max_events, keep, has_edges(scene))
 
     def rows(scene, params, t_end, ts):
         def ball(prm, pl):

@@ -50,7 +50,7 @@ derivative is bounded below, so the iteration is safe), its derivatives by one m
 differentiable Newton step at the solution (the implicit-function theorem). Where the ball
 has just the energy to reach the top (B -> 0), w0 and w_end grow like log(1 / |B|) and
 their times nearly cancel: values keep their accuracy to a few ulps, derivatives lose
-about eps / |B| (B = 0 exactly is taken as B = 1e-300 k).
+about eps / |B| (B = 0 exactly is taken as B = ``RIDGE_B`` k).
 
 A corner (a sphere of radius r around the vertex) gives the same motion where the ball
 moves in the vertical plane through the vertex (no angular momentum about the vertical
@@ -64,12 +64,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-# Duplication steps of R_F: each divides the spread of its arguments by 4, and after the
-# first the spread is below 1, so 12 leave a series error below 1e-30 (Carlson 1995).
-RF_STEPS = 12
-# Newton steps for the hyperbolic angle of a time inside a roll: dt/dw is within a factor
-# sqrt 2 of constant, and the first step starts within a factor 2.
-NEWTON_STEPS = 10
+from .._fold import inner
+from ._constants import RF_STEPS, RIDGE_B, ROLL_NEWTONS
 
 
 def carlson_rf(x, y, z):
@@ -105,7 +101,7 @@ class Pendulum:
         # At rest on the ridge B = 0: s stays 0 for ever. Moving off it with B = 0 exactly
         # (rounding) is taken as B a hair above 0 (the time depends on B like B log B).
         self.rests = (B == 0.0) & (s0 == 0.0)
-        B = jnp.where(B == 0.0, 1e-300 * k, B)
+        B = jnp.where(B == 0.0, RIDGE_B * k, B)
         self.positive = B > 0
         self.beta = jnp.sqrt(jnp.abs(B))
         self.b = self.beta / (2.0 * self.sqrt_k)
@@ -154,7 +150,7 @@ class Pendulum:
             f, slope = jax.lax.stop_gradient(residual(w))
             return jnp.clip(w - f * slope, lo, hi)
 
-        w = jax.lax.fori_loop(0, NEWTON_STEPS, newton, jax.lax.stop_gradient(self.w0 + self.sqrt_k * tau))
+        w = jax.lax.fori_loop(0, ROLL_NEWTONS, newton, jax.lax.stop_gradient(self.w0 + self.sqrt_k * tau))
         f, slope = residual(w)  # (differentiable: the implicit-function step)
         return w - f * slope
 
@@ -169,12 +165,12 @@ class Roll:
         up = jnp.array([0.0, 0.0, 1.0])
         d = p0 - pivot
         self.pivot, self.axis = pivot, axis
-        self.along, self.u = jnp.sum(d * axis), jnp.sum(v0 * axis)
+        self.along, self.u = inner(d, axis), inner(v0, axis)
         arm = d - self.along * axis
-        self.r = jnp.sqrt(jnp.sum(arm * arm))
+        self.r = jnp.sqrt(inner(arm, arm))
         self.out = jnp.cross(up, axis)  # (horizontal, away from the solid)
-        theta = jnp.arctan2(jnp.sum(arm * self.out), arm[2])
-        omega = jnp.sum(v0 * (jnp.cos(theta) * self.out - jnp.sin(theta) * up)) / self.r
+        theta = jnp.arctan2(inner(arm, self.out), arm[2])
+        omega = inner(v0, jnp.cos(theta) * self.out - jnp.sin(theta) * up) / self.r
         self.motion = Pendulum(jnp.sin(0.5 * theta), omega, g / self.r)
 
     @property

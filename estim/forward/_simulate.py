@@ -16,6 +16,7 @@ from ..model._params import PARAM_CHECKS, UNREAD_BY_KERNELS_CHECKS, Params, chec
 from ..model._scene import Scene
 from . import _native, _ode
 from ._balls import ball_parts, check_outside, flat_params, inside, map_balls
+from ._contact import has_edges
 from ._dispatch import NATIVE, ODE, path
 from ._ode import OdeSettings
 from ._record import layout_of, pack, unpack
@@ -241,7 +242,7 @@ def solve_closed_form(scene, params, t_end, ts, max_segments, max_events, checks
         # asks for the kernels; what they do not support runs in JAX below.)
         record, flags = _native.trajectory_rows(scene, params, t_end, ts, max_segments, max_events, keep, checks,
                                                 _INPUT_CHECKS + (_INCOMPLETE,))
-        layout = _native.trajectory_layout(ts.shape[0], max_segments, max_events, keep)
+        layout = _native.trajectory_layout(ts.shape[0], max_segments, max_events, keep, has_edges(scene))
         return Trajectory(ts=ts, record=unflat(record), flags=unflat(flags), gravity=g, layout=layout)
 
     # Ball by ball, in one loop that XLA:CPU compiles as a single kernel (estim._config):
