@@ -118,8 +118,7 @@ REST = 1
 
 # --- Columns of a face-table row (estim.forward._contact.Faces.row) ---------------------------
 # unit normal (3), plane offset H (1), centre (3) and half sizes (3) of the owning box,
-# face direction m (3), index of the owning solid (1); and the bordering faces of lower
-# rank kept per face (Faces.lower).
+# face direction m (3), index of the owning solid (1).
 FACE_NORMAL = 0
 FACE_OFFSET = 3
 FACE_CENTRE = 4
@@ -127,7 +126,6 @@ FACE_HALF = 7
 FACE_DIRECTION = 10
 FACE_SOLID = 13
 FACE_ROW = 14
-FACE_LOWER = 6
 
 
 def exported() -> dict[str, int | float]:

@@ -28,9 +28,6 @@ kernels.
 
 from __future__ import annotations
 
-import functools
-import itertools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -75,7 +72,6 @@ class Faces(eqx.Module):
     row: Float[Array, "faces 14"]  # FACE_ROW columns
     growth: Float[Array, " faces"]
     rank: Int[Array, " faces"]
-    lower: Int[Array, "faces 6"]  # faces of the same box that border this one, of lower rank (-1: none)
     box_lo: Float[Array, "solids 3"]
     box_hi: Float[Array, "solids 3"]
     radius: Float[Array, ""]
@@ -144,34 +140,9 @@ def faces_for(scene: Scene, radius: Float[Array, ""]) -> Faces:
     box_lo = jnp.concatenate([scene.box_centre - scene.box_half, jnp.where(pn < 0, -ps, -jnp.inf)])
     box_hi = jnp.concatenate([scene.box_centre + scene.box_half, jnp.where(pn > 0, ps, jnp.inf)])
     rank = np.where(is_box, np.abs(m).sum(axis=1), 1).astype(np.int32)
-    lower = _lower_faces(scene.face_solid, scene.face_direction, scene.n_boxes)
     return Faces(row=row, growth=jnp.asarray(np.where(is_box, 1.0 / norm, 1.0)), rank=jnp.asarray(rank),
-                 lower=jnp.asarray(lower), box_lo=box_lo, box_hi=box_hi, radius=jnp.asarray(radius),
+                 box_lo=box_lo, box_hi=box_hi, radius=jnp.asarray(radius),
                  n_flat=int(np.sum(rank == 1)))
-
-
-@functools.lru_cache(maxsize=64)
-def _lower_faces(face_solid, face_direction, n_boxes) -> np.ndarray:
-    """For each face of a box, the faces of the same box that border it and have lower
-    rank: those whose direction keeps some of its nonzero components and zeroes the others
-    (an edge (1, 0, 1) borders (1, 0, 0) and (0, 0, 1); a corner borders 3 edges and 3
-    faces). Faces removed as unreachable are left out. ``(faces, 6)``, -1 for none. Read
-    by the native kernels only, which run the seed's geometry (flat faces: all -1)."""
-    solid, m = np.asarray(face_solid), np.asarray(face_direction, dtype=np.float64)
-    index = {(int(b), tuple(d)): f for f, (b, d) in enumerate(zip(solid, m.tolist(), strict=True))}
-    out = np.full((len(solid), 6), -1, dtype=np.int32)
-    for f in np.flatnonzero(solid < n_boxes):
-        nz = np.flatnonzero(m[f])
-        found = []
-        for k in range(1, len(nz)):
-            for keep in itertools.combinations(nz, k):
-                d = np.zeros(3)
-                d[list(keep)] = m[f, list(keep)]
-                g = index.get((int(solid[f]), tuple(d.tolist())))
-                if g is not None:
-                    found.append(g)
-        out[f, : len(found)] = found
-    return out
 
 
 def moves_into(g1, g2):

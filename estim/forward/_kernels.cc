@@ -7,9 +7,11 @@
 // the structure this kernel found with the differentiable closed forms of estim.forward._solver
 // (estim.forward._native, the custom_jvp). Every function below is a line-by-line port of the
 // JAX function of the same name, with the same formulas and the same tolerances; the
-// docstrings there carry the maths (estim.forward._contact, estim.forward.laws, estim.forward._solver,
-// estim.forward._trajectory) and tests/test_native.py checks that both give the same structure
-// and the same numbers, to rounding, ball by ball.
+// docstrings there carry the maths (estim.forward._contact, estim.forward._curved,
+// estim.forward._roll, estim.forward.laws, estim.forward._solver, estim.forward._trajectory) and
+// tests/test_native.py checks that both give the same structure and the same numbers, to
+// rounding, ball by ball. Both geometries run here: the seed's (a box is its faces) and
+// exact edges and corners (the quartic contact search, exact normals, rolls).
 //
 // Why native: a JAX program of this event loop is a single XLA kernel of some 26,000 HLO
 // lines that takes XLA 2.5 s to compile, and a call of it costs its buffers' allocations.
@@ -17,7 +19,9 @@
 //
 // Semantics kept from JAX: jnp.minimum / jnp.maximum / jnp.min propagate NaN (jmin, jmax
 // below), comparisons with NaN are false, and expressions are evaluated in the order the
-// JAX code writes them (XLA does not reassociate floating point).
+// JAX code writes them (XLA does not reassociate floating point; where XLA fuses a multiply
+// and an add under jit, or its sinh, cosh, asinh differ from the C library's by an ulp, the
+// results differ by rounding: tests/test_native.py says where that grows).
 //
 // The contact law: the kernels implement the seed's factor law (estim.forward.laws.FactorLaw:
 // reset, settle and its bounce series' closed forms, the section "The factor law" below)
@@ -62,11 +66,9 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 // Tolerances, limits, segment kinds (FLIGHT, TRAIN, SLIDE, UNUSED), end reasons (END,
 // CONTACT, EXIT, BOUNCES, SETTLE) and event kinds (IMPACT, REST): _constants.h.
 
-// Columns of a face-table row (estim.forward._contact.Faces.row), and the bordering faces
-// of lower rank kept per face.
+// Columns of a face-table row (estim.forward._contact.Faces.row).
 constexpr int ROW = FACE_ROW, NORMAL = FACE_NORMAL, OFFSET = FACE_OFFSET, CENTRE = FACE_CENTRE, HALF = FACE_HALF,
               DIRECTION = FACE_DIRECTION, SOLID = FACE_SOLID;
-constexpr int LOWER = FACE_LOWER;
 
 inline double jmin(double a, double b) { return (a != a || b != b) ? kNaN : (a < b ? a : b); }
 inline double jmax(double a, double b) { return (a != a || b != b) ? kNaN : (a > b ? a : b); }
@@ -97,7 +99,6 @@ struct Scene {
   const double* row;       // (faces, 14)
   const double* growth;    // (faces,)
   const int32_t* rank;     // (faces,)
-  const int32_t* lower;    // (faces, 6)
   const double* box_lo;    // (solids, 3): solids as boxes, before growing by r
   const double* box_hi;
   const double* centre;    // (boxes, 3): the boxes themselves
@@ -781,7 +782,7 @@ struct Candidate {
 // earliest contact found so far (to within the TIE_TIME that ties faces): the result is
 // that of testing every face, the blocked faces and the ties included.
 struct ContactSearch {
-  std::vector<Candidate> found, alive;
+  std::vector<Candidate> found;
   std::vector<double> bound;  // per solid
   std::vector<double> time;   // per face
 
@@ -817,7 +818,7 @@ struct ContactSearch {
         if (on_face(ballistic_p(p, v, a, t), r + CENTRE, r + HALF, fc.radius))
           found.push_back(Candidate{t, fc.order[f], f});
       }
-      best = resolve(fc, p, v, a);
+      best = resolve();
     }
     if (fc.n_flat == fc.s->n_faces) return best;
     // Edges and corners reached before the earliest flat face; ties to the lowest rank,
@@ -835,41 +836,16 @@ struct ContactSearch {
     return {t_min, pick % fc.s->n_faces};
   }
 
-  // The earliest candidate, ties to the lowest order, dropping up to three that are
-  // blocked (the ball touches a lower-rank face bordering it without entering it).
-  std::pair<double, int> resolve(const Faces& fc, V3 p, V3 v, V3 a) {
-    std::vector<Candidate>* list = &found;  // (copied to `alive` only to drop one)
-    for (int rounds = 0;; ++rounds) {
-      const std::vector<Candidate>& c = *list;
-      double t_min = kInf;
-      for (const Candidate& x : c) t_min = jmin(t_min, x.tau);
-      if (!std::isfinite(t_min)) return {t_min, -1};
-      size_t pick = 0;
-      int32_t best = std::numeric_limits<int32_t>::max();
-      for (size_t j = 0; j < c.size(); ++j)
-        if (c[j].tau <= t_min + TIE_TIME && c[j].order < best) best = c[j].order, pick = j;
-      const int face = c[pick].face;
-      if (rounds == 3 || !blocked(fc, p, v, a, face, t_min)) return {t_min, face};
-      if (list == &found) alive = found, list = &alive;
-      alive.erase(alive.begin() + pick);
-    }
-  }
-
-  static bool blocked(const Faces& fc, V3 p, V3 v, V3 a, int face, double t) {
-    const V3 qf = ballistic_p(p, v, a, t), wf = ballistic_v(v, a, t);
-    for (int k = 0; k < LOWER; ++k) {
-      const int j = fc.s->lower[face * LOWER + k];
-      if (j < 0) continue;
-      const V3 nj = fc.normal(j);
-      const double gj0 = inner(nj, qf) - fc.offset[j], gj1 = inner(nj, wf), gj2 = inner(nj, a);
-      const bool touches = std::fabs(gj0) <= POSITION_TOL;
-      // A ball at the apex of a graze leaves the face by no more than gj1^2 / (2 |gj2|)
-      // before falling into it: within POSITION_TOL that is entering it.
-      const bool grazes = (gj2 < -ACCEL_TOL) && (gj1 * gj1 <= -2.0 * gj2 * POSITION_TOL);
-      const bool enters = moves_into(gj1, gj2) || grazes;
-      if (touches && !enters) return true;
-    }
-    return false;
+  // The earliest candidate, ties to the lowest order.
+  std::pair<double, int> resolve() const {
+    double t_min = kInf;
+    for (const Candidate& x : found) t_min = jmin(t_min, x.tau);
+    if (!std::isfinite(t_min)) return {t_min, -1};
+    size_t pick = 0;
+    int32_t best = std::numeric_limits<int32_t>::max();
+    for (size_t j = 0; j < found.size(); ++j)
+      if (found[j].tau <= t_min + TIE_TIME && found[j].order < best) best = found[j].order, pick = j;
+    return {t_min, found[pick].face};
   }
 };
 
@@ -1678,7 +1654,7 @@ struct SceneBuffers {
   int64_t planes() const { return counts[3]; }
   // row, growth, box_lo, box_hi, centre, half, plane normals, plane offsets, gravity
   int64_t n_numbers() const { return faces() * (ROW + 1) + solids() * 6 + boxes() * 6 + planes() * 4 + 1; }
-  int64_t n_integers() const { return faces() * (1 + LOWER); }  // rank, lower
+  int64_t n_integers() const { return faces(); }  // rank
 
   bool fit(const Outer& outer) const {
     if (counts.size() != 5) return false;
@@ -1712,7 +1688,6 @@ struct SceneBuffers {
     s.exact = counts[4] != 0;
     const int32_t* k = at(outer, integers, o);
     s.rank = k;
-    s.lower = k + faces();
     return s;
   }
 };

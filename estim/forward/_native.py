@@ -146,7 +146,7 @@ def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
     faces = faces_for(scene, jnp.float64(0.0))
     numbers = (faces.row, faces.growth, faces.box_lo, faces.box_hi, scene.box_centre, scene.box_half,
                scene.plane_normal, scene.plane_offset, scene.gravity)
-    integers = (faces.rank, faces.lower)
+    integers = (faces.rank,)
     counts = np.array([faces.growth.shape[0], faces.box_lo.shape[0], scene.box_centre.shape[0],
                        scene.plane_offset.shape[0], scene.geometry == "exact"], dtype=np.int64)
     join = lambda xs, dtype: jnp.concatenate([jnp.ravel(x).astype(dtype) for x in xs])  # noqa: E731
