@@ -296,8 +296,9 @@ def test_bench_speed_json(capsys):
     np.testing.assert_allclose(air["gradient"], air["loop_gradient"], rtol=1e-6)
     assert air["shot_events"] == 1 and air["shot_final_position_error"] < 1e-9
     assert air["shot_forward_us"] > 0 and air["shot_forward_alternating_us"] > 0
+    assert air["shot_jacobian_us"] > 0 and air["shot_jacobian_shape"] == [76, 3, 11]  # (0.42 s at 180 Hz)
     assert set(air["targets"]) == {"forward_ratio", "final_position_error", "gradient_ratio", "shot_forward_us",
-                                   "first_call_s"}
+                                   "shot_jacobian_us", "first_call_s"}
 
 
 def test_simulate_json_events_carry_the_normal_and_the_velocity_after(capsys):

@@ -357,14 +357,18 @@ def format_speed(r: dict) -> str:
 
 # Targets of the air-path issue: estim at least as fast as the plain diffrax loop in the same
 # process (forward, 3 balls; its jacfwd against the loop's jax.grad) and within 1e-9 m of
-# the reference; a table-tennis shot in air; the first call of the air path.
+# the reference; a table-tennis shot in air (its forward, and the Jacobian of its positions
+# sampled at 180 Hz with respect to e, mu_t and the release position, velocity and spin: the
+# spin issue's figure); the first call of the air path.
 AIR_TARGETS = {
     "forward_ratio": ("le", 1.0),
     "final_position_error": ("le", 1e-9),
     "gradient_ratio": ("le", 1.0),
     "shot_forward_us": ("le", 100.0),
+    "shot_jacobian_us": ("le", 1000.0),
     "first_call_s": ("le", 2.0),
 }
+SHOT_RATE = 180.0  # Hz: the shot's samples for its Jacobian, as a tracker gives them
 # A table-tennis shot over the table of drop_air.xml: 40 mm, 2.7 g, 4.5 m/s with topspin,
 # one bounce, 0.42 s.
 SHOT = {"scene": "drop_air.xml", "ball": "pingpong", "position": (-0.9, 0.0, 0.25), "velocity": (4.5, 0.0, 0.6),
@@ -414,8 +418,10 @@ def run_air_speed(*, repeats: int = 100) -> dict:
     (``estim.app._event_loop``) in this process: the seed's three balls in still air
     (data/scenes/stairs_air.xml, 2.3 s) forward, and the golf ball's d x_final / d(e, mu_t,
     vx0) (estim: ``jacfwd``; the loop: ``jax.grad``), with errors against a tight reference
-    (Dopri8 at rtol 1e-13); a table-tennis shot (``SHOT``) forward; the first call of the
-    air path in a fresh process."""
+    (Dopri8 at rtol 1e-13); a table-tennis shot (``SHOT``) forward, and the Jacobian
+    (``jacfwd``) of its positions at ``SHOT_RATE`` with respect to its 11 parameters (e,
+    mu_t, release position, velocity, spin); the first call of the air path in a fresh
+    process."""
     scenes_dir = os.path.dirname(default_scene_path())
     air_path = os.path.join(scenes_dir, "stairs_air.xml")
     first = _first_call_air(air_path)
@@ -445,6 +451,16 @@ def run_air_speed(*, repeats: int = 100) -> dict:
     # The shot's absolute figure as the seed's forward is timed (consecutive calls, warm);
     # the rounds above alternate six programs, which also measures them with cold caches.
     shot_alone_us = _median_us(lambda p: shot_forward(p), shot, repeats)
+    shot_ts = jnp.arange(0.0, SHOT["t_end"], 1.0 / SHOT_RATE)
+
+    def shot_positions(th):
+        p = dataclasses.replace(shot, e=th[0:1], mu_t=th[1:2], position=th[None, 2:5], velocity=th[None, 5:8],
+                                spin=th[None, 8:11])
+        return simulate(shot_scene, p, SHOT["t_end"], ts=shot_ts, keep=("samples",)).position[0]
+
+    shot_theta = jnp.concatenate([shot.e, shot.mu_t, shot.position[0], shot.velocity[0], shot.spin[0]])
+    shot_jacobian = jax.jit(jax.jacfwd(shot_positions))
+    shot_jacobian_us = _median_us(shot_jacobian, shot_theta, repeats)
     loop_final, _, loop_times = loop(params)
     ref_final = np.asarray(ref.final.position)
     ref_counts = np.asarray(ref.events.count)
@@ -462,6 +478,8 @@ def run_air_speed(*, repeats: int = 100) -> dict:
         "gradient_ratio": times["gradient"] / times["loop_gradient"],
         "gradient": np.asarray(grad_estim(theta)).tolist(), "loop_gradient": np.asarray(grad_loop(theta)).tolist(),
         "shot_forward_us": shot_alone_us, "shot_forward_alternating_us": times["shot"],
+        "shot_jacobian_us": shot_jacobian_us,
+        "shot_jacobian_shape": list(jax.eval_shape(shot_jacobian, shot_theta).shape),
         "shot_loop_forward_us": times["shot_loop"],
         "shot_events": int(np.asarray(shot_ref.events.count)[0]),
         "shot_final_position_error": float(np.linalg.norm(np.asarray(shot_forward(shot))[0]
@@ -509,11 +527,15 @@ def format_air_speed(r: dict) -> str:
         f"{r['shot_loop_forward_us']:>10.1f} {r['shot_forward_alternating_us'] / r['shot_loop_forward_us']:>7.2f}",
         f"{'table-tennis shot forward, alone (us)':<44} {r['shot_forward_us']:>10.1f} {'':>10} {'':>7} "
         f"{status('shot_forward_us')}",
+        f"{'table-tennis shot Jacobian, alone (us)':<44} {r['shot_jacobian_us']:>10.1f} {'':>10} {'':>7} "
+        f"{status('shot_jacobian_us')}",
         f"{'first call, fresh process (s)':<44} {r['first_call_s']:>10.2f} {'':>10} {'':>7} {status('first_call_s')}",
         "(in turn: the six programs timed once per round, for the ratios; alone: consecutive calls, as the "
         "forward figure of the table above)",
         f"contacts per ball: estim {r['events']}, loop {r['loop_events']}, reference {r['reference_events']}; "
-        f"shot: {r['shot_events']} bounce(s), error {r['shot_final_position_error']:.1e} m; "
+        f"shot: {r['shot_events']} bounce(s), error {r['shot_final_position_error']:.1e} m, Jacobian of its "
+        f"{r['shot_jacobian_shape'][0]} positions at {SHOT_RATE:g} Hz w.r.t. e, mu_t, release position, velocity "
+        "and spin (jacfwd); "
         "gradients: estim " + ", ".join(f"{v:.8f}" for v in r["gradient"])
         + "; loop " + ", ".join(f"{v:.8f}" for v in r["loop_gradient"]) + f"; median of {r['repeats']} rounds",
     ])
