@@ -376,7 +376,16 @@ void intervals(const double* breaks, double start, double horizon, double* lo, d
     const bool inside = std::isfinite(breaks[i]) && breaks[i] > start && breaks[i] < horizon;
     pts[i] = inside ? breaks[i] : horizon;
   }
-  std::sort(pts, pts + N);  // (no NaN: the same order as the JAX sorting network)
+  // estim.forward._curved._sorted: odd-even transposition, N rounds of minima and maxima
+  // (NaN-propagating, as jnp.minimum and jnp.maximum: a NaN horizon stays NaN, never a
+  // comparator that is not an order).
+  for (int round = 0; round < N; ++round) {
+    for (int i = round % 2; i + 1 < N; i += 2) {
+      const double lo_i = jmin(pts[i], pts[i + 1]), hi_i = jmax(pts[i], pts[i + 1]);
+      pts[i] = lo_i;
+      pts[i + 1] = hi_i;
+    }
+  }
   lo[0] = start;
   for (int i = 0; i < N; ++i) lo[i + 1] = hi[i] = pts[i];
   hi[N] = horizon;
