@@ -376,6 +376,20 @@ def test_roll_matches_an_integrator(theta0, omega0):
     np.testing.assert_allclose(rev, jac, rtol=1e-10, atol=1e-12)
 
 
+def sliding_off_treads(n: int, seed: int) -> estim.Params:
+    """n balls (r 0.02-0.1 m, e 0-0.9, mu_t 0.5-1) released sliding on a random tread top of
+    ``stairs_exact.xml`` in a random horizontal direction at up to 1.3 sqrt(g r)."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(0.02, 0.1, n)
+    step = rng.integers(0, 5, n)
+    x = np.maximum(0.6 * step + 0.9 * rng.uniform(-0.3, 0.3, n), 0.6 * step - 0.3 + r + 1e-3)
+    angle = rng.uniform(0, 2 * np.pi, n)
+    speed = rng.uniform(0.0, 1.3, n) * np.sqrt(G * r)
+    pos = np.stack([x, rng.uniform(-0.5, 0.5, n), 1.4 - 0.2 * step + r], axis=1)
+    vel = np.stack([speed * np.cos(angle), speed * np.sin(angle), np.zeros(n)], axis=1)
+    return estim.Params(rng.uniform(0, 0.9, n), rng.uniform(0.5, 1.0, n), r, pos, vel)
+
+
 @pytest.mark.parametrize("path", ["closed_form", "ode"])
 def test_random_slides_off_treads_roll_and_stay_outside(path):
     """64 balls (r 0.02-0.1 m, e 0-0.9, mu_t 0.5-1) released sliding on a random tread top
@@ -388,16 +402,9 @@ def test_random_slides_off_treads_roll_and_stay_outside(path):
     completes there. (Found by this test: a roll's end decided from the signs at the end of
     one bisection, which rounding can flip, sent a ball 2 cm into a tread.)"""
     scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
-    rng = np.random.default_rng(0)
     n = 64
-    r = rng.uniform(0.02, 0.1, n)
-    step = rng.integers(0, 5, n)
-    x = np.maximum(0.6 * step + 0.9 * rng.uniform(-0.3, 0.3, n), 0.6 * step - 0.3 + r + 1e-3)
-    angle = rng.uniform(0, 2 * np.pi, n)
-    speed = rng.uniform(0.0, 1.3, n) * np.sqrt(G * r)
-    pos = np.stack([x, rng.uniform(-0.5, 0.5, n), 1.4 - 0.2 * step + r], axis=1)
-    vel = np.stack([speed * np.cos(angle), speed * np.sin(angle), np.zeros(n)], axis=1)
-    params = estim.Params(rng.uniform(0, 0.9, n), rng.uniform(0.5, 1.0, n), r, pos, vel)
+    params = sliding_off_treads(n, seed=0)
+    r = np.asarray(params.radius)
     ts = np.linspace(0.0, 3.0, 1501)
     kw = {"solver": diffrax.Tsit5(), "max_steps": 4096} if path == "ode" else {"max_segments": 96}
     traj = estim.simulate(scene, params, 3.0, ts=ts, throw=False, keep=("samples", "solution"), **kw)

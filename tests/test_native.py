@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import ROOT, box_distance, jax_path
+from test_exact_geometry import sliding_off_treads
 
 import estim
 from estim.forward import _native
@@ -30,10 +31,16 @@ from estim.forward.laws import FactorLaw
 # Rounding: the kernel evaluates every closed form in the order the JAX code writes it,
 # but its log, expm1 and pow are the C library's, not XLA's (which differ in the last
 # bit), and a difference of an ulp in one event time carries through the later bounces.
-# Measured over the balls below: at most 9.4e-14 relative to max(1, |x|) (s, m, m/s);
+# Measured over the balls below: at most 9.4e-14 relative to max(1, |x|) (s, m, m/s;
+# 1.4e-13 on the scenes with exact edges);
 # 1e-12 leaves a factor 10 and still catches any wrong formula, whose errors are of the
 # size of the quantities themselves.
 ROUNDING = 1e-12
+# A roll's time and state pass through XLA's sinh, cosh and asinh (an ulp from the C
+# library's) and through the pendulum's energy B = omega^2 - 4 k sin^2(theta / 2), a
+# difference of nearly equal terms for a ball that just makes it over an edge
+# (estim.forward._roll): over the rolls below at most 3e-12 s, 7e-13 m and 4e-11 m/s apart.
+ROLLING = 1e-10
 
 
 def test_kernels_are_built_and_used():
@@ -143,6 +150,33 @@ def test_plan_matches_the_jax_planner(scene_balls):
         a, b = np.asarray(getattr(native.segments, name)), np.asarray(getattr(ref.segments, name))
         np.testing.assert_allclose(a[same & ~ill], b[same & ~ill], rtol=ROUNDING, atol=ROUNDING, err_msg=name)
         np.testing.assert_allclose(a[same & ill], b[same & ill], rtol=1e-6, atol=1e-6, err_msg=name)
+
+
+def test_rolls_match_the_jax_planner():
+    """Balls sliding off the treads of the exact staircase roll over edges, along them and
+    onto corners, where the closed form stops one whose roll leaves the vertical plane
+    through the vertex (tests/test_exact_geometry.py checks them against geometry and
+    energy): the kernels' plans are the JAX planner's, decision for decision (the stops
+    included), and their samples agree to rounding."""
+    scene = SCENES["stairs_exact"]()
+    params = sliding_off_treads(96, seed=1)
+    t_end, S = 3.0, 96
+    native = _native.plan(scene, params, t_end, S)
+    ref = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, t_end, S)))(flat_params(params))
+    kinds = np.asarray(ref.decisions.kind)
+    assert np.sum(np.any(kinds == 4, axis=1)) >= 50 and not np.all(np.asarray(ref.complete))
+    for name in ("kind", "support", "n", "reason", "face"):
+        np.testing.assert_array_equal(getattr(native.decisions, name), getattr(ref.decisions, name), err_msg=name)
+    np.testing.assert_array_equal(native.complete, ref.complete)
+    for name in ("t1", "p1", "v1", "v1_post", "normal", "pivot"):
+        np.testing.assert_allclose(getattr(native.segments, name), getattr(ref.segments, name),
+                                   rtol=ROLLING, atol=ROLLING, err_msg=name)
+    ts = np.linspace(0.0, t_end, 301)
+    traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=S, throw=False, keep=("samples",))
+    with jax_path():
+        ref_traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=S, throw=False, keep=("samples",))
+    np.testing.assert_allclose(traj.position, ref_traj.position, rtol=ROLLING, atol=ROLLING)
+    np.testing.assert_allclose(traj.velocity, ref_traj.velocity, rtol=ROLLING, atol=ROLLING)
 
 
 @pytest.mark.parametrize("keep", [None, (), ("events",), ("samples", "solution")])
