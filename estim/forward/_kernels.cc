@@ -98,7 +98,7 @@ struct Scene {
   int n_faces, n_solids, n_boxes, n_planes;
   const double* row;       // (faces, 14)
   const double* growth;    // (faces,)
-  const int32_t* rank;     // (faces,)
+  const double* rank;      // (faces,): 1 a flat face, 2 an edge, 3 a corner
   const double* box_lo;    // (solids, 3): solids as boxes, before growing by r
   const double* box_hi;
   const double* centre;    // (boxes, 3): the boxes themselves
@@ -168,7 +168,7 @@ struct Faces {
   void build(const Scene& scene) {
     const int F = scene.n_faces;
     order.resize(F);
-    for (int f = 0; f < F; ++f) order[f] = scene.rank[f] * F + f;
+    for (int f = 0; f < F; ++f) order[f] = static_cast<int32_t>(scene.rank[f]) * F + f;
     n_flat = 0;
     while (n_flat < F && scene.rank[n_flat] == 1) ++n_flat;
     first.assign(scene.n_solids + 1, n_flat);
@@ -1647,31 +1647,29 @@ const ffi::NativeType<T>* at(const Outer& outer, const ffi::Buffer<T>& b, int64_
   return b.typed_data() + outer.offset(b.dimensions(), o);
 }
 
-// The scene as two buffers (estim.forward._native._scene_operands): its numbers and its integers,
-// each its arrays flattened one after the other, and the counts of its faces, solids,
-// boxes and planes (`counts`), which say where each array starts. (Two operands instead
-// of eleven: each operand, a constant of the program in a jitted call, costs the call a
-// little.)
+// The scene as one buffer (estim.forward._native._scene_operands): its arrays flattened one
+// after the other, and the counts of its faces, solids, boxes and planes (`counts`), which
+// say where each array starts, and whether its geometry is exact. (One operand instead of
+// eleven: each operand, a constant of the program in a jitted call, costs the call a
+// little; the faces' ranks, small integers, travel as numbers: an integer operand of all
+// ones, as the seed's geometry has, is a broadcast that XLA computes at every call.)
 struct SceneBuffers {
   ffi::Buffer<ffi::F64> numbers;
-  ffi::Buffer<ffi::S32> integers;
   ffi::Span<const int64_t> counts;  // faces, solids, boxes, planes, exact geometry (0, 1)
 
   int64_t faces() const { return counts[0]; }
   int64_t solids() const { return counts[1]; }
   int64_t boxes() const { return counts[2]; }
   int64_t planes() const { return counts[3]; }
-  // row, growth, box_lo, box_hi, centre, half, plane normals, plane offsets, gravity
-  int64_t n_numbers() const { return faces() * (ROW + 1) + solids() * 6 + boxes() * 6 + planes() * 4 + 1; }
-  int64_t n_integers() const { return faces(); }  // rank
+  // row, growth, rank, box_lo, box_hi, centre, half, plane normals, plane offsets, gravity
+  int64_t n_numbers() const { return faces() * (ROW + 2) + solids() * 6 + boxes() * 6 + planes() * 4 + 1; }
 
   bool fit(const Outer& outer) const {
     if (counts.size() != 5) return false;
     for (int64_t c : counts)
       if (c < 0) return false;
-    const auto nd = numbers.dimensions(), id = integers.dimensions();
-    return outer.fits(nd, 1) && outer.fits(id, 1) && nd[nd.size() - 1] == n_numbers() &&
-           id[id.size() - 1] == n_integers();
+    const auto nd = numbers.dimensions();
+    return outer.fits(nd, 1) && nd[nd.size() - 1] == n_numbers();
   }
   Scene scene(const Outer& outer, int64_t o) const {
     Scene s;
@@ -1687,6 +1685,7 @@ struct SceneBuffers {
     };
     s.row = next(faces() * ROW);
     s.growth = next(faces());
+    s.rank = next(faces());
     s.box_lo = next(solids() * 3);
     s.box_hi = next(solids() * 3);
     s.centre = next(boxes() * 3);
@@ -1695,8 +1694,6 @@ struct SceneBuffers {
     s.p_offset = next(planes());
     s.gravity = *next(1);
     s.exact = counts[4] != 0;
-    const int32_t* k = at(outer, integers, o);
-    s.rank = k;
     return s;
   }
 };
@@ -1786,13 +1783,13 @@ void parallel_for(ffi::ThreadPool& pool, int64_t n, int64_t grain, Fn fn) {
 const ffi::Error kShapes = ffi::Error::InvalidArgument("estim: the native solver got inputs of unexpected shapes");
 
 // Plan every ball: decisions, segments, segment count and completion (estim.forward._solver.Plan).
-ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers, ffi::Buffer<ffi::S32> scene_integers,
+ffi::Error PlanImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers,
                     ffi::Buffer<ffi::F64> balls, ffi::Buffer<ffi::F64> t_end, ffi::ResultBuffer<ffi::S32> kind, ffi::ResultBuffer<ffi::S32> support, ffi::ResultBuffer<ffi::F64> n,
                     ffi::ResultBuffer<ffi::S32> reason, ffi::ResultBuffer<ffi::S32> face,
                     ffi::ResultBuffer<ffi::F64> segments, ffi::ResultBuffer<ffi::S32> n_segments,
                     ffi::ResultBuffer<ffi::PRED> complete, ffi::Span<const int64_t> counts,
                     ffi::Span<const int64_t> columns) {
-  const SceneBuffers sb{scene_numbers, scene_integers, counts};
+  const SceneBuffers sb{scene_numbers, counts};
   const BallRows bb{balls, columns};
   const Outer outer(kind->dimensions(), 2);  // kind: (..., N, S)
   if (!sb.fit(outer) || !bb.fit(outer) || !outer.fits(t_end.dimensions(), 0)) return kShapes;
@@ -1947,7 +1944,7 @@ int trajectory_rows(const Scene& sc, const Ball& b, double te, const double* ts,
 // failing check over the balls (the smallest code, as estim.forward._simulate orders them) is
 // returned as an error carrying its message (`messages`: one per line, in code order).
 ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numbers,
-                          ffi::Buffer<ffi::S32> scene_integers, ffi::Buffer<ffi::F64> e, ffi::Buffer<ffi::F64> mu_t,
+                          ffi::Buffer<ffi::F64> e, ffi::Buffer<ffi::F64> mu_t,
                           ffi::Buffer<ffi::F64> radius, ffi::Buffer<ffi::F64> position,
                           ffi::Buffer<ffi::F64> velocity, ffi::Buffer<ffi::F64> compression,
                           ffi::Buffer<ffi::F64> mass, ffi::Buffer<ffi::F64> drag,
@@ -1955,7 +1952,7 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numb
                           ffi::ResultBuffer<ffi::F64> record, ffi::ResultBuffer<ffi::S32> flags, int64_t max_segments,
                           int64_t max_events, bool checks, ffi::Span<const int64_t> fields, std::string_view messages,
                           ffi::Span<const int64_t> counts) {
-  const SceneBuffers sb{scene_numbers, scene_integers, counts};
+  const SceneBuffers sb{scene_numbers, counts};
   const Outer outer(record->dimensions(), 2);  // record: (..., N, numbers)
   const auto own = record->dimensions();
   const int64_t N = own[own.size() - 2], n_numbers = own[own.size() - 1];
@@ -2010,8 +2007,7 @@ ffi::Error TrajectoryImpl(ffi::ThreadPool pool, ffi::Buffer<ffi::F64> scene_numb
 static auto scene_binding() {
   return ffi::Ffi::Bind()
       .Ctx<ffi::ThreadPool>()
-      .Arg<ffi::Buffer<ffi::F64>>()   // the scene's numbers
-      .Arg<ffi::Buffer<ffi::S32>>();  // the scene's integers
+      .Arg<ffi::Buffer<ffi::F64>>();  // the scene
 }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(EstimPlan, PlanImpl,

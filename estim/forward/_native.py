@@ -136,21 +136,19 @@ def _register() -> None:
         jax.ffi.register_ffi_target(name, capsule, platform="cpu")
 
 
-def _scene_operands(scene: Scene) -> tuple[tuple, np.ndarray]:
+def _scene_operands(scene: Scene) -> tuple[jax.Array, np.ndarray]:
     """The scene as the kernels read it: the face table (``estim.forward._contact.Faces``, for
-    radius 0: the kernels grow it by each ball's radius), the solids and gravity, as two
-    arrays (numbers, integers: each array flattened, one after the other, in the order of
-    the kernel's ``SceneBuffers``), and the counts of faces, solids, boxes and planes that
-    say where each begins, and whether the geometry is exact (the kernel's ``counts``
+    radius 0: the kernels grow it by each ball's radius; its ranks as numbers), the solids
+    and gravity, as one array (each flattened, one after the other, in the order of the
+    kernel's ``SceneBuffers``), and the counts of faces, solids, boxes and planes that say
+    where each begins, and whether the geometry is exact (the kernel's ``counts``
     attribute)."""
     faces = faces_for(scene, jnp.float64(0.0))
-    numbers = (faces.row, faces.growth, faces.box_lo, faces.box_hi, scene.box_centre, scene.box_half,
+    numbers = (faces.row, faces.growth, faces.rank, faces.box_lo, faces.box_hi, scene.box_centre, scene.box_half,
                scene.plane_normal, scene.plane_offset, scene.gravity)
-    integers = (faces.rank,)
     counts = np.array([faces.growth.shape[0], faces.box_lo.shape[0], scene.box_centre.shape[0],
                        scene.plane_offset.shape[0], scene.geometry == "exact"], dtype=np.int64)
-    join = lambda xs, dtype: jnp.concatenate([jnp.ravel(x).astype(dtype) for x in xs])  # noqa: E731
-    return (join(numbers, jnp.float64), join(integers, jnp.int32)), counts
+    return jnp.concatenate([jnp.ravel(x).astype(jnp.float64) for x in numbers]), counts
 
 
 def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
@@ -178,9 +176,9 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     shapes = (out((n, S), jnp.int32), out((n, S), jnp.int32), out((n, S), jnp.float64), out((n, S), jnp.int32),
               out((n, S), jnp.int32), out((n, S, 26), jnp.float64), out((n,), jnp.int32), out((n,), jnp.bool_))
     call = jax.ffi.ffi_call("estim_plan", shapes, vmap_method="expand_dims")
-    (scene_numbers, scene_integers), counts = _scene_operands(scene)
+    scene_numbers, counts = _scene_operands(scene)
     kind, support, count, reason, face, numbers, n_segments, complete = call(
-        scene_numbers, scene_integers, rows, t_end, counts=counts, columns=param_columns)
+        scene_numbers, rows, t_end, counts=counts, columns=param_columns)
     columns, start = {}, 0
     for name, size in _SEGMENT:
         columns[name] = numbers[..., start] if size == 1 else numbers[..., start:start + size]
@@ -260,8 +258,8 @@ def trajectory_rows(scene: Scene, params, t_end, ts, max_segments: int, max_even
         return x.reshape((1,) + event) if x.shape == event else flat
 
     mass = jnp.zeros((0,)) if params.mass is None else one_or_each(params.mass, each.mass, ())
-    (scene_numbers, scene_integers), counts = _scene_operands(scene)
-    return call(scene_numbers, scene_integers, one_or_each(params.e, each.e, ()), one_or_each(params.mu_t, each.mu_t, ()),
+    scene_numbers, counts = _scene_operands(scene)
+    return call(scene_numbers, one_or_each(params.e, each.e, ()), one_or_each(params.mu_t, each.mu_t, ()),
                 one_or_each(params.radius, each.radius, ()), one_or_each(params.position, each.position, (3,)),
                 one_or_each(params.velocity, each.velocity, (3,)),
                 one_or_each(params.compression, each.compression, ()), mass,
