@@ -82,9 +82,8 @@ LISTED_FLIGHT = 1e-6
 # --- How a ball moves in a closed-form segment (Decision.kind), and in an ODE step's mode ---
 # FLIGHT: a parabola (or an integrated flight); TRAIN: a whole bounce series on one face,
 # summed in closed form; SLIDE: moving along (or resting on) a face; UNUSED: a padding slot;
-# ROLL: rolling over an edge or a corner (estim.forward._roll; exact geometry only, which
-# the native kernels do not run). The ODE path's mode (Step.mode) is FLIGHT, SLIDE or ROLL:
-# the same notion.
+# ROLL: rolling over an edge or a corner (estim.forward._roll; exact geometry only). The
+# ODE path's mode (Step.mode) is FLIGHT, SLIDE or ROLL: the same notion.
 FLIGHT = 0
 TRAIN = 1
 SLIDE = 2
