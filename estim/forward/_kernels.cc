@@ -923,17 +923,6 @@ double train_reach(const Faces& fc, int face, V3 p, V3 u, double height) {
   return obstacle <= POSITION_TOL ? -1.0 : jmax(reach, 0.0);
 }
 
-bool series_clear(const Faces& fc, int face, V3 p, V3 v, double duration, double gravity) {
-  const double d = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * duration + 0.5 * gravity * (duration * duration);
-  const double solid = fc.row(face)[SOLID];
-  for (int b = 0; b < fc.s->n_solids; ++b) {
-    bool meets = static_cast<double>(b) != solid;
-    for (int i = 0; i < 3 && meets; ++i) meets = (p[i] - d < fc.hi(b, i)) && (p[i] + d > fc.lo(b, i));
-    if (meets) return false;
-  }
-  return true;
-}
-
 // A ratio q of geometric sums, with log(q) and expm1(log(q)) computed on first use and
 // kept: a ball's closed forms sum the same few ratios again and again, and many balls
 // never sum some of them.
@@ -1256,7 +1245,7 @@ Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& 
 // cannot go on (a roll over a corner out of a vertical plane through its vertex, or over an
 // edge that is not horizontal: not followed, as in estim.forward._solver._next_structure).
 bool next_structure(const Faces& fc, const Ball& b, const Segment& seg, const Decision& d, Step* next) {
-  const double e = b.e, g = fc.s->gravity;
+  const double g = fc.s->gravity;
   const V3 a = v3(0.0, 0.0, -1.0) * g;
   const int face = d.face > 0 ? d.face : 0;
   const V3 n_face = contact_normal(fc, face, seg.p1);
@@ -1269,24 +1258,13 @@ bool next_structure(const Faces& fc, const Ball& b, const Segment& seg, const De
   const bool rolls = curved && touches && (inner(n_face, a) + across_speed2(fc, face, post, n_face) / fc.radius < 0);
   const bool grazed = curved && touches;
   const bool up = n_face[2] > 1.0 - AXIS_TOL && !curved;
-  const bool inclined = (inner(n_face, a) < 0) && !up && !curved && (e < 1);  // FactorLaw.accumulates
   const V3 if_support = fc.normal(support_face(d.support));
   const bool stays = (d.kind == SLIDE) && (std::fabs(inner(n_face, if_support)) < AXIS_TOL) && !curved;
   // (Only a contact after which the ball neither stays on its face nor settles can start
   // a train: only then is its bounce count needed.)
   const bool may_train = d.reason == CONTACT && !stays && !settled;
   double n_train = 0.0;
-  if (may_train && inclined) {
-    // on_bevel: a whole Zeno series, if it lands on the face and meets nothing else
-    const Series s = series(post, n_face, a);
-    const Start whole = series_end(s, kInf, b.rates);
-    const V3 x_inf = whole.x, x_one = series_end(s, 1.0, b.rates).x;
-    const double* row = fc.row(face);
-    const bool lands = on_face(seg.p1 + x_inf, row + CENTRE, row + HALF, fc.radius) &&
-                       on_face(seg.p1 + x_one, row + CENTRE, row + HALF, fc.radius);
-    const bool clear = series_clear(fc, face, seg.p1, post, whole.t, g);
-    n_train = (lands && clear) ? kInf : 0.0;
-  } else if (may_train && up) {
+  if (may_train && up) {
     // on_upward: how many bounces provably land on the face
     const double w = post[2];
     const V3 u = v3(post[0], post[1], 0.0);
@@ -1296,7 +1274,7 @@ bool next_structure(const Faces& fc, const Ball& b, const Segment& seg, const De
     const double y = speed > 0 ? reach / (speed > 0 ? speed * t_flight : 1.0) : kInf;
     n_train = reach < 0 ? 0.0 : geometric_count(b.rates.by_emu, y);  // FactorLaw.landings_within
   }
-  int32_t after_kind = (stays || settled) ? SLIDE : (((up || inclined) && n_train >= 1) ? TRAIN : FLIGHT);
+  int32_t after_kind = (stays || settled) ? SLIDE : ((up && n_train >= 1) ? TRAIN : FLIGHT);
   after_kind = rolls ? ROLL : after_kind;
   const int32_t after_support = stays ? d.support : face;
   int32_t kind, support;
