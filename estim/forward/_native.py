@@ -194,7 +194,7 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
 
 @functools.lru_cache(maxsize=64)
 def trajectory_layout(n_times: int, max_segments: int, max_events: int, keep: frozenset[str],
-                      rolls: bool = False) -> Layout:
+                      rolls: bool) -> Layout:
     """The layout of one ball's Trajectory rows (``estim.forward._record``), as the JAX path packs
     them: built from placeholder parts of the right shapes and dtypes. ``rolls``: whether the
     scene has edges and corners (``estim.forward._contact.has_edges``)."""
