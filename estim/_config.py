@@ -13,6 +13,7 @@ run, not what they compute.
 
 import functools
 import os
+import time
 from collections.abc import Callable
 
 import equinox as eqx
@@ -176,8 +177,14 @@ CLOSED_FORM_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 1),)
 # The ODE path (estim.forward._ode), one step loop per ball: XLA's defaults. Its steps are
 # arithmetic on a few vectors, which the fusion emitters compile into faster code: 3 balls
 # in still air ran in 0.63 ms with them, 1.36 ms without, and compiled in the same 4.0 s
-# (2-core reference machine, jax 0.10.2); at optimisation level 0, 2.2 ms in 3.0 s.
-ODE_COMPILE = ()
+# (2-core reference machine, jax 0.10.2); at optimisation level 0, 2.2 ms in 3.0 s. At top
+# level (``estim.simulate`` called directly) a program starts with the fit's quick options
+# and moves to these once it has run as long as its first call took (``jit``'s
+# ``optimised``): the seed's 3 balls in still air, every part kept, compiled in 2.4 s
+# instead of 4.4 s and ran in 6.9 ms instead of 1.2 ms (2-core development machine, AMD
+# EPYC, session 36), so a single call, the common case there, takes half the time.
+ODE_COMPILE = FIT_ODE_COMPILE
+ODE_OPTIMISED = ()
 
 
 @functools.cache
@@ -201,16 +208,34 @@ def top_level() -> bool:
     return bool(clean()) if clean is not None else False
 
 
+def signature(tree) -> tuple:
+    """What a compiled program depends on in ``tree`` (arguments): its structure, the shape
+    and dtype of every array and the value of every other leaf (static, as ``filter_jit``
+    treats it)."""
+    leaves, structure = jax.tree.flatten(tree)
+    return structure, tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves)
+
+
 def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] = FAST_COMPILE,
-        static_argnames: tuple[str, ...] | None = None):
+        static_argnames: tuple[str, ...] | None = None,
+        optimised: tuple[tuple[str, object], ...] | None = None, tier_up: int | None = None):
     """``equinox.filter_jit``, with the XLA compile ``options`` when called at top level.
 
     With ``static_argnames``, ``jax.jit`` instead: every other argument must then be a
     pytree of arrays. It splits the arguments in C++, where ``filter_jit`` partitions
     them in Python at every call (the direct call of ``simulate``: 0.15 ms of filter_jit
-    for 0.07 ms of program)."""
+    for 0.07 ms of program).
+
+    With ``optimised``, ``options`` are the quick ones (compiled fast, run slowly), and a
+    program (one ``signature`` of the arguments) is compiled again with ``optimised``
+    after ``tier_up`` calls, or by default once its quick program has run, after its
+    first call, as long as that first call took (compile included): the ski-rental rule,
+    which never spends more than about twice what knowing the number of calls in advance
+    would. Under that rule top-level calls wait for their results (to time them) until
+    their program moves on."""
     if fun is None:
-        return functools.partial(jit, options=options, static_argnames=static_argnames)
+        return functools.partial(jit, options=options, static_argnames=static_argnames, optimised=optimised,
+                                 tier_up=tier_up)
 
     def wrap(**compiler):
         if static_argnames is None:
@@ -218,15 +243,37 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
         return jax.jit(fun, static_argnames=static_argnames, **compiler)
 
     nested = wrap()
-    top = None
+    top = fast = None
+    spent = {}  # signature -> seconds of its quick program's calls (the first, the rest), or calls; None once optimised
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        nonlocal top
+        nonlocal top, fast
         if not top_level():
             return nested(*args, **kwargs)
         if top is None:
             top = wrap(compiler_options=compile_options(options))
-        return top(*args, **kwargs)
+        if optimised is None:
+            return top(*args, **kwargs)
+        key = signature((args, kwargs))
+        try:
+            clock = spent.setdefault(key, [0.0, 0.0])
+        except TypeError:  # (a static leaf that cannot be hashed: filter_jit will say so)
+            return top(*args, **kwargs)
+        if clock is None:
+            if fast is None:
+                fast = wrap(compiler_options=compile_options(optimised))
+            return fast(*args, **kwargs)
+        if tier_up is not None:  # (counted: clock[0] is the number of calls)
+            clock[0] += 1
+            if clock[0] >= tier_up:
+                spent[key] = None
+            return top(*args, **kwargs)
+        start = time.perf_counter()
+        out = jax.block_until_ready(top(*args, **kwargs))
+        clock[bool(clock[0])] += time.perf_counter() - start
+        if clock[1] >= clock[0]:
+            spent[key] = None
+        return out
 
     return call

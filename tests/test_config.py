@@ -248,3 +248,31 @@ def _gradient_kernels(final_x, theta):
         np.testing.assert_allclose(grad(theta), [0.19213914, 6.81524982, 2.17816532], atol=5e-9)
         kernels[keep] = _entry_kernels(grad.lower(theta).compile().as_text())
     return kernels
+
+
+def test_a_quick_program_tiers_up_once_it_has_run_as_long_as_its_first_call(monkeypatch):
+    """``jit(..., optimised=...)`` at top level: the quick options until the calls after
+    the first have taken as long as the first (the ski-rental rule), then the optimised
+    ones, per signature (shapes and static values); inside a transformation, neither."""
+    compiled = []
+
+    def fake_filter_jit(fun, compiler_options=None):
+        def run(*args, **kwargs):
+            compiled.append(compiler_options)
+            return fun(*args, **kwargs)
+        return run
+
+    clock = iter([0.0, 1.0] + [t for k in range(1, 10) for t in (10.0 * k, 10.0 * k + 0.3)])
+    monkeypatch.setattr(eqx, "filter_jit", fake_filter_jit)
+    monkeypatch.setattr(_config.time, "perf_counter", lambda: next(clock))
+    quick, optimised = (("xla_backend_optimization_level", 0),), (("xla_backend_optimization_level", 1),)
+    program = _config.jit(lambda x, n: x * n, options=quick, optimised=optimised)
+    q, o = _config.compile_options(quick), _config.compile_options(optimised)
+    for _ in range(6):  # the first call 1 s, then 0.3 s each: 0.3 + 0.3 + 0.3 + 0.3 >= 1 after the fifth
+        program(np.ones(2), 3)
+    program(np.ones(3), 3)  # another shape: another program, quick again
+    program(np.ones(2), 4)  # another static value: the same
+    assert compiled == [q] * 5 + [o] + [q] * 2
+    compiled.clear()
+    jax.make_jaxpr(lambda x: program(x, 3))(np.ones(2))  # inside a trace: no options of its own
+    assert compiled == [None]

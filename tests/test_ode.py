@@ -5,8 +5,11 @@ Every call here uses a batch of three balls and the default sample times, so the
 compiles the ODE program once per scene structure (vacuum / air) and once for jacfwd.
 """
 
+import collections
+
 import diffrax
 import jax
+import jax.extend
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -235,3 +238,45 @@ def test_drag_gradients_match_finite_differences(stairs_air):
     fd = np.stack([(out(theta.at[i].add(eps)) - out(theta.at[i].add(-eps))) / (2 * eps)
                    for i in range(4)], axis=1)
     np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
+
+
+def _scan_lengths(jaxpr) -> collections.Counter:
+    """How many scans of each length a jaxpr holds, sub-jaxprs (loops, branches) included."""
+    lengths = collections.Counter()
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "scan":
+            lengths[eqn.params["length"]] += 1
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            lengths += _scan_lengths(sub)
+    return lengths
+
+
+def test_the_primal_runs_the_plan_alone_and_derivatives_replay_it(stairs_air):
+    """A primal call reuses the nodes the step loop recorded (no replay, a scan over the
+    ``MAX_STEPS / REPLAY_CHUNK`` chunks of steps, in its program); a derivative replays the steps, whose values are the plan's to rounding
+    (an event step's end moves by a Newton step of the plan's residual)."""
+    params = seed_params(stairs_air)
+    primal = jax.make_jaxpr(lambda p: estim.simulate(stairs_air, p, 2.3).record)(params)
+    tangent = jax.make_jaxpr(lambda p: jax.jvp(lambda q: estim.simulate(stairs_air, q, 2.3).record, (p,), (p,)))(params)
+    chunks = _ode.MAX_STEPS // _ode.REPLAY_CHUNK
+    assert _scan_lengths(primal.jaxpr)[chunks] == 0
+    assert _scan_lengths(tangent.jaxpr)[chunks] == 1
+
+    settings = _ode.OdeSettings(diffrax.Tsit5(), jnp.asarray(_ode.RTOL), jnp.asarray(_ode.ATOL),
+                                jnp.asarray(_ode.SLACK), _ode.MAX_STEPS)
+    ball = jax.tree.map(lambda x: x[1], params)
+    pl = _ode.plan(stairs_air, ball, 2.3, settings)
+    end, nodes = _ode.replay(stairs_air, ball, 2.3, pl.steps, settings, pl.n_steps)
+    assert int(pl.n_steps) > 50 and int(np.sum(np.asarray(pl.steps.kind) == _ode.STEP_CONTACT)) >= 5
+    n = int(pl.n_steps)
+    used = jax.tree.map(lambda x: x[:n], (pl.nodes, nodes))
+    for got, want in zip(jax.tree.leaves((pl.end.position, pl.end.velocity, used[0])),
+                         jax.tree.leaves((end.position, end.velocity, used[1])), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+    # The values a derivative returns are the primal's, exactly (under the same compile
+    # options: XLA's level 0, which a first call at top level has, rounds differently).
+    def final(p):
+        return estim.simulate(stairs_air, p, 2.3).final.position
+
+    value = jax.jit(lambda p: jax.jvp(final, (p,), (p,))[0])(params)
+    np.testing.assert_array_equal(value, jax.jit(final)(params))

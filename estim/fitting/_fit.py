@@ -32,7 +32,6 @@ the other: ``estim.fitting._sharding.per_unit``):
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import functools
 import math
@@ -162,26 +161,16 @@ def fit_program(fun):
     options of the scene's path: ``FIT_COMPILE`` for the closed form; on the ODE path
     ``FIT_ODE_COMPILE`` (quick to compile, slow to run) for the first ``FIT_ODE_TIER_UP``
     calls with one signature (shapes, dtypes and static values of the arguments), then
-    ``FIT_ODE_OPTIMISED`` (``estim._config`` gives the figures). The two programs give the
-    same fits to rounding."""
+    ``FIT_ODE_OPTIMISED`` (``estim._config`` gives the figures; ``estim._config.jit``
+    counts the calls). The two programs give the same fits to rounding."""
     closed_form = jit(fun, options=FIT_COMPILE)
-    quick, optimised = jit(fun, options=FIT_ODE_COMPILE), jit(fun, options=FIT_ODE_OPTIMISED)
-    calls = collections.Counter()
+    ode = jit(fun, options=FIT_ODE_COMPILE, optimised=FIT_ODE_OPTIMISED, tier_up=FIT_ODE_TIER_UP)
 
     @functools.wraps(fun)
     def call(scene, *args, **kwargs):
-        if path(scene) != ODE:
-            return closed_form(scene, *args, **kwargs)
-        leaves, structure = jax.tree.flatten((scene, args, kwargs))
-        signature = (structure, tuple((np.shape(x), getattr(x, "dtype", type(x))) if _is_array(x) else x for x in leaves))
-        calls[signature] += 1
-        return (optimised if calls[signature] > FIT_ODE_TIER_UP else quick)(scene, *args, **kwargs)
+        return (ode if path(scene) == ODE else closed_form)(scene, *args, **kwargs)
 
     return call
-
-
-def _is_array(x) -> bool:
-    return isinstance(x, (np.ndarray, jax.Array, np.generic, float, complex)) and not isinstance(x, bool)
 
 
 def _ode_settings():

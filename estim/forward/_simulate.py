@@ -11,7 +11,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from .._config import CLOSED_FORM_COMPILE, ODE_COMPILE, jit, keep_loop, require_x64, top_level
+from .._config import (
+    CLOSED_FORM_COMPILE,
+    ODE_COMPILE,
+    ODE_OPTIMISED,
+    jit,
+    keep_loop,
+    require_x64,
+    top_level,
+)
 from ..model._params import PARAM_CHECKS, UNREAD_BY_KERNELS_CHECKS, Params, check_t_end
 from ..model._scene import Scene
 from . import _native, _ode
@@ -198,7 +206,7 @@ _INCOMPLETE_ODE = (
 )
 
 
-@jit(options=ODE_COMPILE)
+@jit(options=ODE_COMPILE, optimised=ODE_OPTIMISED)
 def solve_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
     _ode.TRACE_COUNT += 1
     # Ball by ball, as on the closed-form path: each ball's step loop is a loop of its own
