@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import ROOT, box_distance, jax_path
-from test_exact_geometry import sliding_off_treads
+from test_exact_geometry import dropped_on_corners, sliding_off_treads
 
 import estim
 from estim.forward import _native
@@ -154,31 +154,39 @@ def test_plan_matches_the_jax_planner(scene_balls):
         np.testing.assert_allclose(a[same & ill], b[same & ill], rtol=1e-6, atol=1e-6, err_msg=name)
 
 
-def test_rolls_match_the_jax_planner():
+@pytest.mark.parametrize("balls", ["sliding_off_treads", "dropped_on_corners"])
+def test_rolls_match_the_jax_planner(balls):
     """Balls sliding off the treads of the exact staircase roll over edges, along them and
-    onto corners, where the closed form stops one whose roll leaves the vertical plane
-    through the vertex (tests/test_exact_geometry.py checks them against geometry and
-    energy): the kernels' plans are the JAX planner's, decision for decision (the stops
-    included), and their samples agree to rounding."""
+    onto corners; balls dropped onto corners roll over them off the vertical plane through
+    the vertex (the spherical pendulum), then over edges (tests/test_exact_geometry.py
+    checks them against geometry, energy and the ODE path): the kernels' plans are the JAX
+    planner's, decision for decision, and their samples agree to rounding."""
     scene = SCENES["stairs_exact"]()
-    params = sliding_off_treads(96, seed=1)
-    t_end, S = 3.0, 96
+    params = sliding_off_treads(96, seed=1) if balls == "sliding_off_treads" else dropped_on_corners(64, seed=2)
+    t_end, S = (3.0, 96) if balls == "sliding_off_treads" else (1.5, 48)
     native = _native.plan(scene, params, t_end, S)
     ref = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, t_end, S)))(flat_params(params))
     kinds = np.asarray(ref.decisions.kind)
-    assert np.sum(np.any(kinds == 4, axis=1)) >= 50 and not np.all(np.asarray(ref.complete))
+    spherical = np.any((kinds == 4) & np.all(np.asarray(ref.segments.normal) == 0, axis=-1), axis=1)
+    assert np.sum(np.any(kinds == 4, axis=1)) >= 50 and np.all(np.asarray(ref.complete))
+    assert np.sum(spherical) >= (50 if balls == "dropped_on_corners" else 0)
     for name in ("kind", "support", "n", "reason", "face"):
         np.testing.assert_array_equal(getattr(native.decisions, name), getattr(ref.decisions, name), err_msg=name)
     np.testing.assert_array_equal(native.complete, ref.complete)
+    # (Over a corner near the plane through its vertex the spherical pendulum's closed form
+    # loses digits to r - z2 ~ L^2, a difference of nearly equal numbers (estim.forward._roll.
+    # Spherical): a roll with L = 4e-5 m^2/s ended 2e-13 s apart on the two sides, by their
+    # sin, cos, asin and atan2, which a 1.5 s slide after it carried to 2e-10 m.)
+    tol = ROLLING if balls == "sliding_off_treads" else 1e-9
     for name in ("t1", "p1", "v1", "v1_post", "normal", "pivot"):
         np.testing.assert_allclose(getattr(native.segments, name), getattr(ref.segments, name),
-                                   rtol=ROLLING, atol=ROLLING, err_msg=name)
+                                   rtol=tol, atol=tol, err_msg=name)
     ts = np.linspace(0.0, t_end, 301)
     traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=S, throw=False, keep=("samples",))
     with jax_path():
         ref_traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=S, throw=False, keep=("samples",))
-    np.testing.assert_allclose(traj.position, ref_traj.position, rtol=ROLLING, atol=ROLLING)
-    np.testing.assert_allclose(traj.velocity, ref_traj.velocity, rtol=ROLLING, atol=ROLLING)
+    np.testing.assert_allclose(traj.position, ref_traj.position, rtol=tol, atol=tol)
+    np.testing.assert_allclose(traj.velocity, ref_traj.velocity, rtol=tol, atol=tol)
 
 
 @pytest.mark.parametrize("keep", [None, (), ("events",), ("samples", "solution")])
@@ -222,8 +230,13 @@ def test_derivatives_match_the_jax_path(geometry):
     with jax_path():
         jac_ref = jax.jacfwd(outputs, argnums=argnums)(*args)
         grad_ref = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=argnums)(*args)
+    # (On exact geometry a ball whose bounces die out on an edge before it rolls over it
+    # magnifies the last bit of each bounce, as test_plans_match_the_jax_planner allows for:
+    # one ball here, its later event times' derivatives 7e-9 apart, 3e-8 relative, since
+    # XLA compiles R_F as a loop, which rounds the JAX side's roll by an ulp differently.)
+    tol = 1e-9 if geometry == "seed" else 1e-7
     for x, y in zip(jax.tree.leaves((jac, grad)), jax.tree.leaves((jac_ref, grad_ref)), strict=True):
-        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(x, y, rtol=tol, atol=tol)
 
 
 def test_vmap_over_the_scene_and_t_end(stairs):

@@ -281,8 +281,7 @@ RANDOM_SETTINGS = settings(
 def test_random_scenes_invariants(case):
     """In random scenes: finite states and event times for every ball, complete or not;
     for the balls that reach t_end (all but those trapped between boxes, which need more
-    than max_segments, and those that would roll over a corner out of a vertical plane
-    through its vertex: both reported, never silently cut): outside every solid, energy
+    than max_segments: reported, never silently cut): outside every solid, energy
     non-increasing. Compute is bounded: at most max_segments segments and max_events
     listed events per ball, and an incomplete ball makes simulate raise."""
     scene, batch = case
@@ -292,13 +291,7 @@ def test_random_scenes_invariants(case):
     for x in (traj.position, traj.velocity, traj.final.position, traj.final.velocity):
         assert np.all(np.isfinite(np.asarray(x[:k])))
     assert np.all(np.asarray(traj.events.count[:k]) <= traj.events.t.shape[-1])
-    # A ball stopped where it would roll over a corner out of a vertical plane through its
-    # vertex (a spherical pendulum, not followed in closed form: its last contact on one)
-    # is reported, as a trapped one is.
-    count = np.asarray(traj.events.count[:k])
-    last = np.asarray(traj.events.face[:k])[np.arange(k), np.maximum(count - 1, 0)]
-    rolls = ~done & (count > 0) & np.array([len(scene.face_label(int(f))[1]) >= 4 for f in last])
-    assert np.mean(done | rolls) >= 0.9, np.flatnonzero(~done & ~rolls)
+    assert np.mean(done) >= 0.9, np.flatnonzero(~done)
     _check_batch(scene, batch, traj, k, done)
     if not done.all():
         params, _ = padded_params(*batch)

@@ -63,6 +63,10 @@ RF_STEPS = 12
 # Newton steps for the hyperbolic angle of a time inside a roll: dt/dw is within a factor
 # sqrt 2 of constant, and the first step starts within a factor 2.
 ROLL_NEWTONS = 10
+# Bracketed Newton steps for where a roll over a corner leaves the corner's region
+# (estim.forward._roll.Spherical): each at least halves the bracket where Newton's step
+# leaves it.
+SPHERE_STEPS = 40
 # A roll whose energy parameter B is exactly 0 (moving off the ridge, by rounding) is taken
 # as B = RIDGE_B k, a hair above 0 (its time depends on B like B log B).
 RIDGE_B = 1e-300

@@ -469,6 +469,11 @@ def is_curved(faces: Faces, face) -> Bool[Array, ""]:
     return faces.rank[face] >= 2
 
 
+def is_corner(faces: Faces, face) -> Bool[Array, ""]:
+    """Whether face ``face`` is a corner."""
+    return faces.rank[face] == 3
+
+
 def contact_normal(faces: Faces, face, q):
     """Unit outward normal of face ``face`` at the centre q: the face's own on a flat face,
     from the edge or vertex to q on a curved piece (``estim.model._scene``)."""
@@ -508,8 +513,8 @@ def roll_axis(faces: Faces, face, p, v):
     line; on a corner the line through the vertex perpendicular to the vertical plane
     through the vertex and the ball's centre (or its motion, where the centre is right
     above the vertex). ``exact`` is false where that is not the ball's motion: an edge
-    that is not horizontal, or a corner where the ball moves out of that plane (a
-    spherical pendulum, not followed)."""
+    that is not horizontal, or a corner where the ball moves out of that plane (the
+    spherical pendulum: ``estim.forward._solver.RollOver``)."""
     pivot, mask = piece_at(faces, face)
     up = jnp.array([0.0, 0.0, 1.0])
     edge = jnp.sum(mask) == 2

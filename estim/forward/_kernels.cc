@@ -11,7 +11,8 @@
 // estim.forward._roll, estim.forward.laws, estim.forward._solver, estim.forward._trajectory) and
 // tests/test_native.py checks that both give the same structure and the same numbers, to
 // rounding, ball by ball. Both geometries run here: the seed's (a box is its faces) and
-// exact edges and corners (the quartic contact search, exact normals, rolls).
+// exact edges and corners (the quartic contact search, exact normals, rolls over edges and
+// corners, the spherical pendulum included).
 //
 // Why native: a JAX program of this event loop is a single XLA kernel of some 26,000 HLO
 // lines that takes XLA 2.5 s to compile, and a call of it costs its buffers' allocations.
@@ -20,8 +21,9 @@
 // Semantics kept from JAX: jnp.minimum / jnp.maximum / jnp.min propagate NaN (jmin, jmax
 // below), comparisons with NaN are false, and expressions are evaluated in the order the
 // JAX code writes them (XLA does not reassociate floating point; where XLA fuses a multiply
-// and an add under jit, or its sinh, cosh, asinh differ from the C library's by an ulp, the
-// results differ by rounding: tests/test_native.py says where that grows).
+// and an add under jit, or its sinh, cosh, asinh, sin, cos, atan2, asin and acos differ from
+// the C library's by an ulp, the results differ by rounding: tests/test_native.py says where
+// that grows).
 //
 // The contact law: the kernels implement the seed's factor law (estim.forward.laws.FactorLaw:
 // reset, settle and its bounce series' closed forms, the section "The factor law" below)
@@ -40,6 +42,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <thread>
@@ -61,6 +64,7 @@ namespace ffi = xla::ffi;
 namespace {
 
 constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr double kPi = 3.141592653589793;  // (Python's math.pi, as jnp.pi)
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 // Tolerances, limits, segment kinds (FLIGHT, TRAIN, SLIDE, UNUSED), end reasons (END,
@@ -780,6 +784,218 @@ struct Roll {
   }
 };
 
+// estim.forward._roll.carlson_rc
+inline double carlson_rc(double x, double y) {
+  for (int i = 0; i < RF_STEPS; ++i) {
+    const double lam = 2.0 * std::sqrt(x) * std::sqrt(y) + y;
+    x = 0.25 * (x + lam);
+    y = 0.25 * (y + lam);
+  }
+  const double mean = (x + 2.0 * y) / 3.0;
+  const double s = (y - mean) / mean;
+  return (1.0 + s * s * (0.3 + s * (1.0 / 7.0 + s * (0.375 + s * 9.0 / 22.0)))) / std::sqrt(mean);
+}
+
+// estim.forward._roll.carlson_rj
+inline double carlson_rj(double x, double y, double z, double p) {
+  double total = 0.0, scale = 1.0;
+  for (int i = 0; i < RF_STEPS; ++i) {
+    const double sx = std::sqrt(x), sy = std::sqrt(y), sz = std::sqrt(z);
+    const double lam = sx * (sy + sz) + sy * sz;
+    const double root = p * (sx + sy + sz) + sx * sy * sz;
+    const double alpha = root * root;
+    const double beta = p * ((p + lam) * (p + lam));
+    total = total + scale * carlson_rc(alpha, beta);
+    x = 0.25 * (x + lam);
+    y = 0.25 * (y + lam);
+    z = 0.25 * (z + lam);
+    p = 0.25 * (p + lam);
+    scale = 0.25 * scale;
+  }
+  const double mean = 0.2 * (x + y + z + 2.0 * p);
+  const double dx = 1.0 - x / mean, dy = 1.0 - y / mean, dz = 1.0 - z / mean, dp = 1.0 - p / mean;
+  const double ea = dx * (dy + dz) + dy * dz;
+  const double eb = dx * dy * dz;
+  const double ec = dp * dp;
+  const double ed = ea - 3.0 * ec;
+  const double ee = eb + 2.0 * dp * (ea - ec);
+  const double series = (1.0 + ed * (-3.0 / 14.0 + 0.75 * 3.0 / 22.0 * ed - 1.5 * 3.0 / 26.0 * ee)
+                         + eb * (1.0 / 6.0 + dp * (-6.0 / 22.0 + dp * 3.0 / 26.0))
+                         + dp * ea * (1.0 / 3.0 - dp * 3.0 / 22.0) - dp * ec / 3.0);
+  return 3.0 * total + scale * series / (mean * std::sqrt(mean));
+}
+
+// estim.forward._roll._third_kind
+inline double third_kind(double n, double sin_psi, double cos_psi, double delta2) {
+  const double s2 = sin_psi * sin_psi;
+  const double c2 = cos_psi * cos_psi;
+  return sin_psi * carlson_rf(c2, delta2, 1.0) + n / 3.0 * s2 * sin_psi * carlson_rj(c2, delta2, 1.0, 1.0 - n * s2);
+}
+
+// estim.forward._roll.Spherical (signs: the corner's direction, or null: no region exit).
+struct Spherical {
+  V3 vertex;
+  double g, r, L, z1, z2, z3, K, m, n1, n2, psi0, t0, phi_psi0, phi0, psi_end, duration;
+  int exit_axis = -1;
+
+  Spherical(V3 vertex_, V3 p0, V3 v0, double g_, const double* signs) : vertex(vertex_), g(g_) {
+    const V3 d = p0 - vertex;
+    const double r2 = inner(d, d);
+    r = std::sqrt(r2);
+    const double z0 = d[2], dz0 = v0[2];
+    const double energy = 0.5 * inner(v0, v0) + g * z0;
+    L = d[0] * v0[1] - d[1] * v0[0];
+    const double a = -energy / g, b = -r2, c = (2.0 * energy * r2 - L * L) / (2.0 * g);
+    const double q = (a * a - 3.0 * b) / 9.0;
+    const double rr = (2.0 * a * a * a - 9.0 * a * b + 27.0 * c) / 54.0;
+    const double sq = std::sqrt(jmax(q, 0.0));
+    const double cube = sq * q;
+    const double theta = std::acos(jmin(jmax(rr / (cube > 0 ? cube : 1.0), -1.0), 1.0));
+    double roots[3];
+    const int ks[3] = {0, 2, 1};
+    for (int j = 0; j < 3; ++j) {
+      double z = -2.0 * sq * std::cos((theta + 2.0 * kPi * ks[j]) / 3.0) - a / 3.0;
+      for (int i = 0; i < 2; ++i) {
+        const double f = ((z + a) * z + b) * z + c;
+        const double df = (3.0 * z + 2.0 * a) * z + b;
+        z = z - (df != 0 ? f / df : 0.0);
+      }
+      roots[j] = z;
+    }
+    z1 = roots[0];
+    z2 = roots[1];
+    z3 = roots[2];
+    const double span = z2 - z1;
+    K = 2.0 * r / std::sqrt(2.0 * g * (z3 - z2));
+    m = -span / (z3 - z2);
+    n1 = -span / (r - z2);
+    n2 = span / (r + z2);
+    const double sin0 = -r * dz0 / std::sqrt(2.0 * g * (z0 - z1) * (z3 - z0) * span);
+    const double cos0 = std::sqrt(jmax((z0 - z1) / span, 0.0));
+    psi0 = std::atan2(sin0, cos0);
+    t0 = time(psi0);
+    phi_psi0 = azimuth(psi0);
+    phi0 = std::atan2(d[1], d[0]);
+    const double s_star2 = jmin(jmax((z2 - 2.0 * energy / (3.0 * g)) / span, 0.0), 1.0);
+    const bool pressed = 3.0 * g * z0 >= 2.0 * energy;
+    const double psi_star = pressed ? jmax(std::asin(std::sqrt(s_star2)), psi0) : psi0;
+    psi_end = psi_star;
+    if (signs != nullptr) {
+      const double x0 = signs[0] * d[0], y0 = signs[1] * d[1];
+      const double turn = signs[0] * signs[1] * L;
+      const double beta0 = std::atan2(y0, x0);
+      const double room = turn > 0 ? 0.5 * kPi - beta0 : beta0;
+      bool crosses;
+      const double psi_exit = crossing(room, psi0, psi_star, &crosses);
+      exit_axis = crosses ? (turn > 0 ? 0 : 1) : -1;
+      psi_end = crosses ? psi_exit : psi_star;
+    }
+    duration = time(psi_end) - t0;
+  }
+
+  // Spherical._time
+  double time(double psi) const {
+    const double s = std::sin(psi), c = std::cos(psi);
+    return K * s * carlson_rf(c * c, 1.0 - m * s * s, 1.0);
+  }
+
+  // Spherical._azimuth
+  double azimuth(double psi) const {
+    const double s = std::sin(psi), c = std::cos(psi);
+    const double delta2 = 1.0 - m * s * s;
+    return L * K / (2.0 * r) * (third_kind(n1, s, c, delta2) / (r - z2) + third_kind(n2, s, c, delta2) / (r + z2));
+  }
+
+  // Spherical._height
+  double height(double psi) const {
+    const double s = std::sin(psi);
+    return z2 - (z2 - z1) * s * s;
+  }
+
+  // Spherical._crossing (the differentiable step of JAX is one more step here)
+  double crossing(double room, double lo, double hi, bool* crosses) const {
+    auto turned = [&](double psi) { return std::fabs(azimuth(psi) - phi_psi0); };
+    auto rate = [&](double psi) {
+      const double z = height(psi);
+      const double s = std::sin(psi);
+      return std::fabs(L) / (r * r - z * z) * K / std::sqrt(1.0 - m * s * s);
+    };
+    *crosses = turned(hi) >= room;
+    double a = lo, b = hi, x = 0.5 * (lo + hi);
+    for (int i = 0; i < SPHERE_STEPS; ++i) {
+      const double f = turned(x) - room;
+      const double a1 = f < 0 ? x : a, b1 = f < 0 ? b : x;
+      const double newton = x - f / rate(x);
+      a = a1;
+      b = b1;
+      x = (newton > a && newton < b) ? newton : 0.5 * (a + b);
+    }
+    x = *crosses ? x : b;
+    return x - (turned(x) - room) / rate(x);
+  }
+
+  // Spherical.state
+  void state(double tau, V3* p, V3* v) const {
+    tau = jmin(jmax(tau, 0.0), duration);
+    const double target = t0 + tau;
+    double psi = psi0 + tau / K;
+    for (int i = 0; i <= ROLL_NEWTONS; ++i) {
+      const double s = std::sin(psi);
+      const double f = time(psi) - target, slope = std::sqrt(1.0 - m * s * s) / K;
+      const double next = psi - f * slope;
+      psi = i < ROLL_NEWTONS ? jmin(jmax(next, psi0), psi_end) : next;  // (the last: unclipped)
+    }
+    const double s = std::sin(psi), c = std::cos(psi);
+    const double z = height(psi);
+    const double dz = -(z2 - z1) * 2.0 * s * c * std::sqrt(1.0 - m * s * s) / K;
+    const double rho2 = r * r - z * z;
+    const double rho = std::sqrt(rho2);
+    const double phi = phi0 + azimuth(psi) - phi_psi0;
+    const double dphi = L / rho2;
+    const double drho = -z * dz / rho;
+    const double cp = std::cos(phi), sp = std::sin(phi);
+    *p = vertex + v3(rho * cp, rho * sp, z);
+    *v = v3(drho * cp - rho * dphi * sp, drho * sp + rho * dphi * cp, dz);
+  }
+};
+
+// estim.forward._solver.RollOver (only the selected motion is computed).
+struct RollOver {
+  V3 pivot, axis;
+  bool spherical = false;
+  int exit_axis = -1;
+  double ends = 0.0;
+  std::optional<Roll> plane;
+  std::optional<Spherical> sphere;
+
+  RollOver(const Faces& fc, int face, V3 p, V3 v) {
+    const RollAxis ax = roll_axis(fc, face, p, v);
+    const bool corner = fc.s->rank[face] == 3;
+    spherical = corner && !ax.exact;
+    pivot = ax.pivot;
+    axis = spherical ? kZero : ax.axis;
+    const double g = fc.s->gravity;
+    if (spherical) {
+      sphere.emplace(pivot, p, v, g, fc.row(face) + DIRECTION);
+      exit_axis = sphere->exit_axis;
+      ends = sphere->duration;
+    } else {
+      plane.emplace(pivot, ax.axis, p, v, g);
+      ends = jmin(plane->duration(), roll_exit_time(fc, face, pivot, ax.axis, p, v));
+    }
+  }
+
+  void state(double tau, V3* p, V3* v) const {
+    if (spherical) sphere->state(tau, p, v);
+    else plane->state(tau, p, v);
+  }
+
+  // RollOver.follows
+  static bool follows(const Faces& fc, int face, V3 p, V3 v) {
+    return roll_axis(fc, face, p, v).exact || fc.s->rank[face] == 3;
+  }
+};
+
 struct Candidate {
   double tau;
   int32_t order;
@@ -1098,6 +1314,13 @@ struct Segment {
 };
 constexpr int SEGMENT_NUMBERS = 26;
 
+// A roll's state tau into segment s (estim.forward._trajectory.roll_states): about its axis,
+// or, for a roll over a corner off its plane (no axis), the spherical pendulum.
+void roll_state(const Segment& s, double g, double tau, V3* p, V3* v) {
+  if (s.normal[0] == 0 && s.normal[1] == 0 && s.normal[2] == 0) Spherical(s.pivot, s.p0, s.v0, g, nullptr).state(tau, p, v);
+  else Roll(s.pivot, s.normal, s.p0, s.v0, g).state(tau, p, v);
+}
+
 void write_segment(const Segment& s, double* o) {
   o[0] = s.t0;
   for (int i = 0; i < 3; ++i) {
@@ -1156,9 +1379,7 @@ void decide_end(const Faces& fc, const Ball& b, const Step& st, double t_end, Co
   }
   if (st.kind == ROLL) {
     const int sup = support_face(st.support);
-    const RollAxis ax = roll_axis(fc, sup, st.p, st.v);
-    const double ends = jmin(Roll(ax.pivot, ax.axis, st.p, st.v, fc.s->gravity).duration(),
-                             roll_exit_time(fc, sup, ax.pivot, ax.axis, st.p, st.v));
+    const double ends = RollOver(fc, sup, st.p, st.v).ends;
     *reason = st.t + ends >= t_end ? END : EXIT;
     *face = -1;
     *tau = kInf;
@@ -1214,15 +1435,14 @@ Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& 
   }
   if (d.kind == ROLL) {
     const int sup = support_face(d.support);
-    const RollAxis ax = roll_axis(fc, sup, st.p, st.v);
-    const Roll motion(ax.pivot, ax.axis, st.p, st.v, fc.s->gravity);
-    const double ends = jmin(motion.duration(), roll_exit_time(fc, sup, ax.pivot, ax.axis, st.p, st.v));
+    const RollOver motion(fc, sup, st.p, st.v);
+    const double ends = motion.ends;
     const double tau_r = d.reason == END ? t_end - st.t : (std::isfinite(ends) ? ends : 0.0);
     motion.state(tau_r, &seg.p1, &seg.v1);
     seg.v1_post = seg.v1;
     seg.t1 = st.t + tau_r;
-    seg.normal = ax.axis;
-    seg.pivot = ax.pivot;
+    seg.normal = motion.axis;
+    seg.pivot = motion.pivot;
     return seg;
   }
   if (d.kind == SLIDE) slide_frame(fc, d.support, st.v, a, &seg.v0, &seg.acc);
@@ -1242,8 +1462,8 @@ Segment advance(const Faces& fc, const Ball& b, const Step& st, const Decision& 
 }
 
 // Kind, support and bounce count of the segment that follows seg; false where the ball
-// cannot go on (a roll over a corner out of a vertical plane through its vertex, or over an
-// edge that is not horizontal: not followed, as in estim.forward._solver._next_structure).
+// cannot go on (a roll over an edge that is not horizontal: not followed, as in
+// estim.forward._solver._next_structure).
 bool next_structure(const Faces& fc, const Ball& b, const Segment& seg, const Decision& d, Step* next) {
   const double g = fc.s->gravity;
   const V3 a = v3(0.0, 0.0, -1.0) * g;
@@ -1293,21 +1513,31 @@ bool next_structure(const Faces& fc, const Ball& b, const Segment& seg, const De
     // A ball that starts to roll rolls about a horizontal line where that is its motion;
     // one whose roll reaches the end of its edge goes on over the corner there.
     bool onto = false;
-    int corner = -1;
+    int onward = -1;
     if (d.kind == ROLL && d.reason == EXIT) {
+      // Off an edge's end onto the corner there; off a corner's region onto the edge it
+      // crossed into; only if pressed onto it, as at a contact.
       const int sup = support_face(d.support);
-      const RollAxis ax = roll_axis(fc, sup, seg.p0, seg.v0);
-      const bool at_end = roll_exit_time(fc, sup, ax.pivot, ax.axis, seg.p1, seg.v1) <= TIE_TIME;
+      const RollOver motion(fc, sup, seg.p0, seg.v0);
+      const bool at_end = motion.spherical
+                              ? motion.exit_axis >= 0
+                              : roll_exit_time(fc, sup, motion.pivot, motion.axis, seg.p1, seg.v1) <= TIE_TIME;
       const double* row = fc.row(sup);
       int free = 0;  // (an edge's axis: the first of least |m|)
       for (int i = 1; i < 3; ++i) free = std::fabs(row[DIRECTION + i]) < std::fabs(row[DIRECTION + free]) ? i : free;
-      corner = next_piece(fc, sup, free, seg.v1);
-      onto = at_end && corner >= 0;
+      if (motion.spherical) free = motion.exit_axis > 0 ? motion.exit_axis : 0;
+      onward = next_piece(fc, sup, free, seg.v1);
+      bool pressed = false;
+      if (onward >= 0) {
+        const V3 n_on = contact_normal(fc, onward, seg.p1);
+        pressed = inner(n_on, a) + across_speed2(fc, onward, seg.v1, n_on) / fc.radius < 0;
+      }
+      onto = at_end && onward >= 0 && pressed;
     }
-    const bool followed = roll_axis(fc, onto ? corner : face, seg.p1, onto ? seg.v1 : post).exact;
+    const bool followed = RollOver::follows(fc, onto ? onward : face, seg.p1, onto ? seg.v1 : post);
     if (onto) {
       kind = ROLL;
-      support = corner;
+      support = onward;
     }
     goes_on = !(rolls || onto) || followed;
   }
@@ -1403,7 +1633,7 @@ bool stays_outside(const Faces& fc, double r, const Plan& pl) {
     const Segment& s = pl.segments[k];
     const double half = 0.5 * (s.t1 - s.t0);
     V3 middle = ballistic_p(s.p0, s.v0, s.acc, half), v;
-    if (pl.decisions[k].kind == ROLL) Roll(s.pivot, s.normal, s.p0, s.v0, fc.s->gravity).state(half, &middle, &v);
+    if (pl.decisions[k].kind == ROLL) roll_state(s, fc.s->gravity, half, &middle, &v);
     const bool middle_inside = pl.decisions[k].kind != TRAIN && inside_solid(fc, middle, r, true);
     if (middle_inside || inside_solid(fc, s.p1, r, true)) return false;
   }
@@ -1422,7 +1652,7 @@ void sample(const Plan& pl, const Rates& c, double g, double t, V3* p, V3* v) {
   const Segment& s = pl.segments[k];
   const double tau = t - s.t0;
   if (pl.decisions[k].kind == ROLL) {
-    Roll(s.pivot, s.normal, s.p0, s.v0, g).state(tau, p, v);
+    roll_state(s, g, tau, p, v);
   } else if (pl.decisions[k].kind == TRAIN) {
     const V3 a = v3(0.0, 0.0, -1.0) * g;
     const bool is_train = inner(s.v0, s.normal) > 0;

@@ -55,8 +55,7 @@ about eps / |B| (B = 0 exactly is taken as B = ``RIDGE_B`` k).
 A corner (a sphere of radius r around the vertex) gives the same motion where the ball
 moves in the vertical plane through the vertex (no angular momentum about the vertical
 through it): the pivot axis is then horizontal and perpendicular to that plane. Off that
-plane the motion is a spherical pendulum, which estim does not follow: the planner stops
-there and says so.
+plane the motion is the spherical pendulum, equations (6)-(8) of ``Spherical``.
 """
 
 from __future__ import annotations
@@ -65,7 +64,7 @@ import jax
 import jax.numpy as jnp
 
 from .._fold import inner
-from ._constants import RF_STEPS, RIDGE_B, ROLL_NEWTONS
+from ._constants import RF_STEPS, RIDGE_B, ROLL_NEWTONS, SPHERE_STEPS
 
 
 def carlson_rf(x, y, z):
@@ -79,7 +78,7 @@ def carlson_rf(x, y, z):
         lam = sx * (sy + sz) + sy * sz
         return 0.25 * (x + lam), 0.25 * (y + lam), 0.25 * (z + lam)
 
-    x, y, z = jax.lax.fori_loop(0, RF_STEPS, step, (x, y, z), unroll=True)
+    x, y, z = jax.lax.fori_loop(0, RF_STEPS, step, (x, y, z))
     mean = (x + y + z) / 3.0
     dx, dy = 1.0 - x / mean, 1.0 - y / mean
     dz = -(dx + dy)
@@ -198,3 +197,254 @@ class Roll:
         p = base + self.r * (sin_t * self.out + cos_t * up)
         v = self.u * self.axis + self.r * rate * (cos_t * self.out - sin_t * up)
         return p, v
+
+
+def carlson_rc(x, y):
+    """Carlson's degenerate integral ``R_C(x, y) = R_F(x, y, y)``, for x >= 0, y > 0
+    (duplication, then the series of Carlson 1995, eq. 2.49)."""
+
+    def step(_, xy):
+        x, y = xy
+        lam = 2.0 * jnp.sqrt(x) * jnp.sqrt(y) + y
+        return 0.25 * (x + lam), 0.25 * (y + lam)
+
+    x, y = jax.lax.fori_loop(0, RF_STEPS, step, (x, y))
+    mean = (x + 2.0 * y) / 3.0
+    s = (y - mean) / mean
+    return (1.0 + s * s * (0.3 + s * (1.0 / 7.0 + s * (0.375 + s * 9.0 / 22.0)))) / jnp.sqrt(mean)
+
+
+def carlson_rj(x, y, z, p):
+    """Carlson's symmetric elliptic integral of the third kind,
+    ``R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t + p) sqrt((t + x)(t + y)(t + z)))``, for
+    x, y, z >= 0 (at most one zero) and p > 0 (duplication, then the series of Carlson
+    1995, eq. 2.39)."""
+
+    def step(_, carry):
+        x, y, z, p, total, scale = carry
+        sx, sy, sz = jnp.sqrt(x), jnp.sqrt(y), jnp.sqrt(z)
+        lam = sx * (sy + sz) + sy * sz
+        alpha = (p * (sx + sy + sz) + sx * sy * sz) ** 2
+        beta = p * (p + lam) ** 2
+        total = total + scale * carlson_rc(alpha, beta)
+        return 0.25 * (x + lam), 0.25 * (y + lam), 0.25 * (z + lam), 0.25 * (p + lam), total, 0.25 * scale
+
+    zero = 0.0 * (x + y + z + p)
+    x, y, z, p, total, scale = jax.lax.fori_loop(0, RF_STEPS, step, (x, y, z, p, zero, zero + 1.0))
+    mean = 0.2 * (x + y + z + 2.0 * p)
+    dx, dy, dz, dp = 1.0 - x / mean, 1.0 - y / mean, 1.0 - z / mean, 1.0 - p / mean
+    ea = dx * (dy + dz) + dy * dz
+    eb = dx * dy * dz
+    ec = dp * dp
+    ed = ea - 3.0 * ec
+    ee = eb + 2.0 * dp * (ea - ec)
+    series = (1.0 + ed * (-3.0 / 14.0 + 0.75 * 3.0 / 22.0 * ed - 1.5 * 3.0 / 26.0 * ee)
+              + eb * (1.0 / 6.0 + dp * (-6.0 / 22.0 + dp * 3.0 / 26.0))
+              + dp * ea * (1.0 / 3.0 - dp * 3.0 / 22.0) - dp * ec / 3.0)
+    return 3.0 * total + scale * series / (mean * jnp.sqrt(mean))
+
+
+def _third_kind(n, sin_psi, cos_psi, delta2):
+    """Legendre's incomplete integral of the third kind
+    ``Pi(n; psi | m) = int_0^psi dt / ((1 - n sin^2 t) sqrt(1 - m sin^2 t))`` with
+    ``delta2 = 1 - m sin^2 psi``, for 1 - n sin^2 psi > 0 (DLMF 19.25.14)."""
+    s2 = sin_psi * sin_psi
+    c2 = cos_psi * cos_psi
+    return sin_psi * carlson_rf(c2, delta2, 1.0) + n / 3.0 * s2 * sin_psi * carlson_rj(c2, delta2, 1.0, 1.0 - n * s2)
+
+
+class Spherical:
+    """A ball rolling over a corner out of the vertical plane through its vertex: its
+    centre on the sphere of radius r about the vertex V, pressed onto it, under gravity
+    (the spherical pendulum, inverted; frictionless between impacts, as on an edge).
+
+    With d = p - V = (rho cos phi, rho sin phi, z), rho^2 = r^2 - z^2, the energy
+    ``E = |v|^2 / 2 + g z`` and the angular momentum about the vertical
+    ``L = d_x v_y - d_y v_x`` (per unit mass) are conserved, and
+    ``|v|^2 = r^2 z'^2 / rho^2 + L^2 / rho^2`` gives
+
+        r^2 z'^2 = P(z) = 2 (E - g z)(r^2 - z^2) - L^2 = 2 g (z - z1)(z2 - z)(z3 - z),    (6)
+
+    three real roots z1 < z2 < z3 (P(+-r) = -L^2 < 0 <= P(z0)), the motion between z1 and
+    z2 (the highest point). The surface pushes while ``g z / r > |v|^2 / r``, that is down
+    to ``z* = 2 E / (3 g)`` (as on an edge, equation (2)), where the ball leaves in flight.
+    With ``z = z2 - (z2 - z1) sin^2 psi``, psi growing with time (negative while the ball
+    rises), (6) becomes ``dt = K dpsi / sqrt(1 - m sin^2 psi)``,
+    ``K = 2 r / sqrt(2 g (z3 - z2))``, ``m = -(z2 - z1) / (z3 - z2) <= 0``:
+
+        t(psi) = K sin(psi) R_F(cos^2 psi, 1 - m sin^2 psi, 1)                          (7)
+
+    (DLMF 19.25.5; regular in psi, dt/dpsi within [K / sqrt(1 - m), K]), and
+    ``phi' = L / rho^2``, with ``1 / (r^2 - z^2) = (1 / (r - z) + 1 / (r + z)) / (2 r)``,
+
+        phi(psi) = L K / (2 r) (Pi(n1; psi | m) / (r - z2) + Pi(n2; psi | m) / (r + z2)),
+        n1 = -(z2 - z1) / (r - z2),   n2 = (z2 - z1) / (r + z2),                     (8)
+
+    Legendre's integral of the third kind in Carlson's form (``_third_kind``, DLMF
+    19.25.14; Byrd and Friedman 1971). The start needs no inverse function: from (6),
+    ``sin psi0 = -r z0' / sqrt(2 g (z0 - z1)(z3 - z0)(z2 - z1))`` and
+    ``cos psi0 = sqrt((z0 - z1) / (z2 - z1))``.
+
+    The roll ends where the ball leaves (psi* at z*) or leaves the corner's region: its
+    centre's horizontal offset from the vertex crosses 0 along x or y (the octant of the
+    corner's direction ``signs``), where it goes on over the edge there (``exit_axis``;
+    never along z: z* > 0). phi is monotonic (L keeps its sign), so that crossing is found
+    by bracketed Newton steps on (8) in psi, and made differentiable by one more step
+    (the implicit-function theorem), as a time inside the roll is on (7).
+
+    The roots of the cubic (6) come from the trigonometric formula, each refined by
+    Newton steps on P. Near L = 0 (the plane through the vertex, ``roll_axis``'s planar
+    case, which ``Roll`` follows) and near E = g r (just the energy to reach the top) two
+    roots meet and their derivatives lose digits; values stay finite.
+    """
+
+    def __init__(self, vertex, p0, v0, g, signs=None):
+        d = p0 - vertex
+        self.vertex, self.g = vertex, g
+        r2 = inner(d, d)
+        self.r = r = jnp.sqrt(r2)
+        z0, dz0 = d[2], v0[2]
+        energy = 0.5 * inner(v0, v0) + g * z0
+        self.L = L = d[0] * v0[1] - d[1] * v0[0]
+        # z^3 + a z^2 + b z + c = P(z) / (2 g)
+        a, b, c = -energy / g, -r2, (2.0 * energy * r2 - L * L) / (2.0 * g)
+        q = (a * a - 3.0 * b) / 9.0
+        rr = (2.0 * a * a * a - 9.0 * a * b + 27.0 * c) / 54.0
+        sq = jnp.sqrt(jnp.maximum(q, 0.0))
+        cube = sq * q
+        theta = jnp.arccos(jnp.clip(rr / jnp.where(cube > 0, cube, 1.0), -1.0, 1.0))
+        roots = [-2.0 * sq * jnp.cos((theta + 2.0 * jnp.pi * k) / 3.0) - a / 3.0 for k in (0, 2, 1)]
+
+        def polish(z):
+            for _ in range(2):
+                f = ((z + a) * z + b) * z + c
+                df = (3.0 * z + 2.0 * a) * z + b
+                z = z - jnp.where(df != 0, f / jnp.where(df != 0, df, 1.0), 0.0)
+            return z
+
+        z1, z2, z3 = (polish(z) for z in roots)
+        self.z1, self.z2, self.z3 = z1, z2, z3
+        span = z2 - z1
+        self.K = 2.0 * r / jnp.sqrt(2.0 * g * (z3 - z2))
+        self.m = -span / (z3 - z2)
+        self.n1, self.n2 = -span / (r - z2), span / (r + z2)
+        sin0 = -r * dz0 / jnp.sqrt(2.0 * g * (z0 - z1) * (z3 - z0) * span)
+        cos0 = jnp.sqrt(jnp.maximum((z0 - z1) / span, 0.0))
+        self.psi0 = jnp.arctan2(sin0, cos0)
+        self.t0, self.phi_psi0 = self._time(self.psi0), self._azimuth(self.psi0)
+        self.phi0 = jnp.arctan2(d[1], d[0])
+        # Where it leaves the surface: z* = 2 E / (3 g), on the falling side (psi >= 0).
+        s_star2 = jnp.clip((z2 - 2.0 * energy / (3.0 * g)) / span, 0.0, 1.0)
+        # (A ball not pressed at its start leaves at once.)
+        pressed = 3.0 * g * z0 >= 2.0 * energy
+        psi_star = jnp.where(pressed, jnp.maximum(jnp.arcsin(jnp.sqrt(s_star2)), self.psi0), self.psi0)
+        self.exit_axis = jnp.int32(-1)
+        psi_end = psi_star
+        if signs is not None:
+            # The corner's octant, mirrored onto x, y >= 0: the angle beta from the x axis
+            # grows with L' = sx sy L, towards the y axis (x crosses 0: axis 0), or falls to
+            # the x axis (y crosses 0: axis 1).
+            x0, y0 = signs[0] * d[0], signs[1] * d[1]
+            turn = signs[0] * signs[1] * L
+            beta0 = jnp.arctan2(y0, x0)
+            room = jnp.where(turn > 0, 0.5 * jnp.pi - beta0, beta0)
+            psi_exit, crosses = self._crossing(room, self.psi0, psi_star)
+            self.exit_axis = jnp.where(crosses, jnp.where(turn > 0, 0, 1), -1).astype(jnp.int32)
+            psi_end = jnp.where(crosses, psi_exit, psi_star)
+        self.psi_end = psi_end
+        self.duration = self._time(psi_end) - self.t0
+
+    def _time(self, psi):
+        """t(psi) of equation (7)."""
+        s, c = jnp.sin(psi), jnp.cos(psi)
+        return self.K * s * carlson_rf(c * c, 1.0 - self.m * s * s, 1.0)
+
+    def _azimuth(self, psi):
+        """phi(psi) of equation (8), from psi = 0."""
+        s, c = jnp.sin(psi), jnp.cos(psi)
+        delta2 = 1.0 - self.m * s * s
+        # (Both integrals in one call: one copy of R_J's loops in the program.)
+        pi = _third_kind(jnp.stack([self.n1, self.n2]), s, c, delta2)
+        return self.L * self.K / (2.0 * self.r) * (pi[0] / (self.r - self.z2) + pi[1] / (self.r + self.z2))
+
+    def _height(self, psi):
+        s = jnp.sin(psi)
+        return self.z2 - (self.z2 - self.z1) * s * s
+
+    def _crossing(self, room, lo, hi):
+        """The psi in [lo, hi] at which |phi(psi) - phi(lo)| reaches ``room`` (bracketed
+        Newton steps, values; then one differentiable step), and whether it lies there."""
+
+        def turned(psi):
+            return jnp.abs(self._azimuth(psi) - self.phi_psi0)
+
+        def rate(psi):  # |dphi / dpsi| = |L| / rho^2 dt / dpsi
+            z = self._height(psi)
+            s = jnp.sin(psi)
+            return jnp.abs(self.L) / (self.r * self.r - z * z) * self.K / jnp.sqrt(1.0 - self.m * s * s)
+
+        fixed = jax.lax.stop_gradient
+        crosses = fixed(turned(hi) >= room)
+        a, b = fixed((lo, hi))
+        target = fixed(room)
+
+        def step(_, abx):
+            a, b, x = abx
+            f = fixed(turned(x)) - target
+            a, b = jnp.where(f < 0, x, a), jnp.where(f < 0, b, x)
+            newton = x - f / fixed(rate(x))
+            x = jnp.where((newton > a) & (newton < b), newton, 0.5 * (a + b))
+            return a, b, x
+
+        _, _, x = jax.lax.fori_loop(0, SPHERE_STEPS, step, (a, b, 0.5 * (a + b)))
+        x = jnp.where(crosses, x, b)
+        return x - (turned(x) - room) / rate(x), crosses
+
+    def state(self, tau):
+        """Position and velocity ``tau`` after the start (to the roll's end, then held)."""
+        tau = jnp.clip(tau, 0.0, self.duration)
+        target = self.t0 + tau
+
+        def residual(psi):
+            s = jnp.sin(psi)
+            return self._time(psi) - target, jnp.sqrt(1.0 - self.m * s * s) / self.K  # (t - target, dpsi/dt)
+
+        lo, hi = jax.lax.stop_gradient((self.psi0, self.psi_end))
+
+        def newton(_, psi):
+            f, slope = jax.lax.stop_gradient(residual(psi))
+            return jnp.clip(psi - f * slope, lo, hi)
+
+        psi = jax.lax.fori_loop(0, ROLL_NEWTONS, newton, jax.lax.stop_gradient(self.psi0 + tau / self.K))
+        f, slope = residual(psi)
+        psi = psi - f * slope
+        s, c = jnp.sin(psi), jnp.cos(psi)
+        z = self._height(psi)
+        dz = -(self.z2 - self.z1) * 2.0 * s * c * jnp.sqrt(1.0 - self.m * s * s) / self.K
+        rho2 = self.r * self.r - z * z
+        rho = jnp.sqrt(rho2)
+        phi = self.phi0 + self._azimuth(psi) - self.phi_psi0
+        dphi = self.L / rho2
+        drho = -z * dz / rho
+        cp, sp = jnp.cos(phi), jnp.sin(phi)
+        p = self.vertex + jnp.stack([rho * cp, rho * sp, z])
+        v = jnp.stack([drho * cp - rho * dphi * sp, drho * sp + rho * dphi * cp, dz])
+        return p, v
+
+
+def spherical_stand_in(spherical, vertex, p, v, r, g):
+    """(p, v) where ``spherical``, else a state on the sphere of radius r about ``vertex``
+    that is a spherical roll (pressed, off the plane through the vertex): the inputs of a
+    ``Spherical`` that will not be used, harmless (no NaN in the cotangents of a branch not
+    taken)."""
+    p_s = vertex + r * jnp.array([0.6, 0.0, 0.8])
+    v_s = jnp.sqrt(g * r) * jnp.array([0.0, 0.1, 0.0])
+    return jnp.where(spherical, p, p_s), jnp.where(spherical, v, v_s)
+
+
+def roll_state(spherical, plane: Roll, sphere: Spherical, tau):
+    """Position and velocity ``tau`` into a roll: ``sphere``'s where ``spherical``, else
+    ``plane``'s."""
+    p_r, v_r = plane.state(tau)
+    p_s, v_s = sphere.state(tau)
+    return jnp.where(spherical, p_s, p_r), jnp.where(spherical, v_s, v_r)

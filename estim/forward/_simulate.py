@@ -190,10 +190,9 @@ def simulate(
 
 
 _INCOMPLETE = (
-    "a ball needed more closed-form segments than max_segments, or it would roll over a "
-    "corner out of the vertical plane through its vertex (a spherical pendulum: not followed "
-    "in closed form; give the scene air, or a diffrax solver, for the ODE path, which follows it), "
-    "or its path entered a solid (a degenerate contact the closed forms missed); increase "
+    "a ball needed more closed-form segments than max_segments, or it would roll over an "
+    "edge that is not horizontal (not followed in closed form; give the scene air, or a diffrax "
+    "solver, for the ODE path, which follows it), or its path entered a solid (a degenerate contact the closed forms missed); increase "
     "max_segments (a ball bouncing where no series can be summed, against an edge or "
     "between walls, takes a segment per bounce), move the ball off the degenerate point, "
     "or pass throw=False and inspect Trajectory.complete"

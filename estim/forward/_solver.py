@@ -65,6 +65,7 @@ from ._constants import (
     UNUSED,
 )
 from ._contact import (
+    DIRECTION,
     Faces,
     across_speed2,
     ballistic,
@@ -74,6 +75,7 @@ from ._contact import (
     faces_for,
     first_contact,
     inner,
+    is_corner,
     is_curved,
     next_piece,
     piece_at,
@@ -82,7 +84,7 @@ from ._contact import (
     slide_exit_time,
     train_reach,
 )
-from ._roll import Roll
+from ._roll import Roll, Spherical, roll_state, spherical_stand_in
 from ._scan import scan_used
 from .laws import AbstractContactLaw, law_of, series
 
@@ -120,6 +122,40 @@ def _slide_frame(faces, support, v, a):
     """Velocity and acceleration of a ball sliding on face ``support``."""
     n = face_normal(faces, jnp.maximum(support, 0))
     return v - inner(v, n) * n, a - inner(a, n) * n
+
+
+class RollOver:
+    """The roll of a ball at p with velocity v over curved piece ``face`` (an edge or a
+    corner, ``roll_axis``): the pendulum about a horizontal line (``estim.forward._roll.Roll``)
+    over an edge, or over a corner in the vertical plane through its vertex; elsewhere over
+    a corner the spherical pendulum (``Spherical``, ``spherical``). ``ends``: the time to
+    its end (it leaves the surface or the piece's region); ``axis`` the line's direction
+    (zero for a spherical roll), ``pivot`` a point of it (the vertex on a corner);
+    ``exit_axis`` the axis whose bound a spherical roll crosses at its end (-1: it leaves
+    the surface). Both motions are computed and one is selected; the one not taken from
+    a stand-in state (no NaN in values or derivatives)."""
+
+    def __init__(self, faces: Faces, face, p, v, g):
+        pivot, axis, planar = roll_axis(faces, face, p, v)
+        corner = is_corner(faces, face)
+        self.spherical = corner & ~planar
+        self.pivot, self.axis = pivot, jnp.where(self.spherical, 0.0, axis)
+        self.plane = Roll(pivot, axis, p, v, g)
+        p_s, v_s = spherical_stand_in(self.spherical, pivot, p, v, faces.radius, g)
+        self.sphere = Spherical(pivot, p_s, v_s, g, faces.row[face, DIRECTION])
+        self.exit_axis = jnp.where(self.spherical, self.sphere.exit_axis, -1)
+        ends = jnp.minimum(self.plane.duration, roll_exit_time(faces, face, pivot, axis, p, v))
+        self.ends = jnp.where(self.spherical, self.sphere.duration, ends)
+
+    def state(self, tau):
+        """Position and velocity ``tau`` after the start."""
+        return roll_state(self.spherical, self.plane, self.sphere, tau)
+
+    @staticmethod
+    def follows(faces: Faces, face, p, v):
+        """Whether a roll over ``face`` from (p, v) is one estim follows: every roll over a
+        corner, over an edge where the edge is horizontal."""
+        return roll_axis(faces, face, p, v)[2] | is_corner(faces, face)
 
 
 def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decision, t_end, found) -> Segment:
@@ -183,13 +219,11 @@ def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decis
         is_roll = d.kind == ROLL
 
         def roll(_):
-            sup = jnp.maximum(d.support, 0)
-            pivot, axis, _ = roll_axis(faces, sup, p, v)
-            motion = Roll(pivot, axis, p, v, g)
-            ends = jnp.minimum(motion.duration, roll_exit_time(faces, sup, pivot, axis, p, v))
+            motion = RollOver(faces, jnp.maximum(d.support, 0), p, v, g)
+            ends = motion.ends
             tau_r = jnp.where(d.reason == END, t_end - t, jnp.where(jnp.isfinite(ends), ends, 0.0))
             p_r, v_r = motion.state(tau_r)
-            return tau_r, p_r, v_r, axis, pivot
+            return tau_r, p_r, v_r, motion.axis, motion.pivot
 
         def no_roll(_):
             return tau, p1, v1, normal, pivot
@@ -202,8 +236,8 @@ def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decis
 
 def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segment, d: Decision):
     """Kind, support and bounce count of the segment that follows ``seg``, and whether the
-    ball goes on (``False`` where it would roll over a corner out of a vertical plane
-    through its vertex, or over an edge that is not horizontal: not followed)."""
+    ball goes on (``False`` where it would roll over an edge that is not horizontal: not
+    followed)."""
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     face = jnp.maximum(d.face, 0)
@@ -265,14 +299,21 @@ def _next_structure(faces: Faces, gravity, law: AbstractContactLaw, c, seg: Segm
             over the corner there (a flight would find the edge, the face above it and the
             corner all touched at once)."""
             sup = jnp.maximum(d.support, 0)
-            pivot, axis, _ = roll_axis(faces, sup, seg.p0, seg.v0)
-            at_end = roll_exit_time(faces, sup, pivot, axis, seg.p1, seg.v1) <= TIE_TIME
-            free = jnp.argmin(piece_at(faces, sup)[1])  # (an edge's axis)
-            corner, found = next_piece(faces, sup, free, seg.v1)
-            onto = (d.kind == ROLL) & (d.reason == EXIT) & at_end & found
-            piece, u = jnp.where(onto, corner, face), jnp.where(onto, seg.v1, post)
-            followed = roll_axis(faces, piece, seg.p1, u)[2]
-            return jnp.where(onto, ROLL, kind), jnp.where(onto, corner, support), ~(rolls | onto) | followed
+            motion = RollOver(faces, sup, seg.p0, seg.v0, g)
+            # Off an edge's end onto the corner there; off a corner's region onto the edge
+            # it crossed into.
+            at_end = jnp.where(motion.spherical, motion.exit_axis >= 0,
+                               roll_exit_time(faces, sup, motion.pivot, motion.axis, seg.p1, seg.v1) <= TIE_TIME)
+            free = jnp.where(motion.spherical, motion.exit_axis, jnp.argmin(piece_at(faces, sup)[1]))
+            onward, found = next_piece(faces, sup, jnp.maximum(free, 0), seg.v1)
+            # (Onto it only if pressed onto it, as at a contact: a ball that rolls along an
+            # edge to its end faster than the corner holds flies off from the edge.)
+            n_on = contact_normal(faces, onward, seg.p1)
+            pressed = inner(n_on, a) + across_speed2(faces, onward, seg.v1, n_on) / faces.radius < 0
+            onto = (d.kind == ROLL) & (d.reason == EXIT) & at_end & found & pressed
+            piece, u = jnp.where(onto, onward, face), jnp.where(onto, seg.v1, post)
+            followed = RollOver.follows(faces, piece, seg.p1, u)
+            return jnp.where(onto, ROLL, kind), jnp.where(onto, onward, support), ~(rolls | onto) | followed
 
         # (lax.cond: for one ball, the work of a roll only where one starts or ends.)
         kind, support, goes_on = jax.lax.cond(rolls | (d.kind == ROLL), roll_next,
@@ -310,9 +351,7 @@ def _decide_end(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, kind
         return reason_t.astype(jnp.int32), jnp.int32(-1), jnp.float64(jnp.inf)
 
     def roll_end(_):
-        sup = jnp.maximum(support, 0)
-        pivot, axis, _ = roll_axis(faces, sup, p, v)
-        ends = jnp.minimum(Roll(pivot, axis, p, v, g).duration, roll_exit_time(faces, sup, pivot, axis, p, v))
+        ends = RollOver(faces, jnp.maximum(support, 0), p, v, g).ends
         reason_r = jnp.where(t + ends >= t_end, END, EXIT)
         return reason_r.astype(jnp.int32), jnp.int32(-1), jnp.float64(jnp.inf)
 

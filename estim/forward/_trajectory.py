@@ -15,7 +15,7 @@ from ._constants import IMPACT as IMPACT
 from ._constants import REST as REST
 from ._contact import inner
 from ._record import Layout, layout_of, pack, unpack
-from ._roll import Roll
+from ._roll import Roll, Spherical, roll_state, spherical_stand_in
 from ._scan import scan_used
 from ._solver import Decision, Segment
 from .laws import AbstractContactLaw, series
@@ -276,11 +276,17 @@ def roll_states(seg: Segment, is_roll, tau, g):
     (``is_roll``; elementwise over a leading axis), from their start, axis and pivot
     (``estim.forward._roll``). Elsewhere a harmless roll stands in (no NaN in the cotangents
     of a branch not taken)."""
-    is_roll = is_roll[:, None]
-    axis = jnp.where(is_roll, seg.normal, jnp.array([1.0, 0.0, 0.0]))
-    p0 = jnp.where(is_roll, seg.p0, seg.pivot + jnp.array([0.0, 0.0, 1.0]))
-    v0 = jnp.where(is_roll, seg.v0, jnp.array([0.0, 1.0, 0.0]))
-    return jax.vmap(lambda *a: Roll(*a[:4], g).state(a[4]))(seg.pivot, axis, p0, v0, tau)
+    spherical = is_roll & jnp.all(seg.normal == 0, axis=-1)  # (a roll over a corner off its plane: no axis)
+    planar = (is_roll & ~spherical)[:, None]
+    axis = jnp.where(planar, seg.normal, jnp.array([1.0, 0.0, 0.0]))
+    p0 = jnp.where(planar, seg.p0, seg.pivot + jnp.array([0.0, 0.0, 1.0]))
+    v0 = jnp.where(planar, seg.v0, jnp.array([0.0, 1.0, 0.0]))
+
+    def one(spherical, pivot, axis, p0, v0, p0_s, v0_s, tau):
+        p_s, v_s = spherical_stand_in(spherical, pivot, p0_s, v0_s, 1.0, g)
+        return roll_state(spherical, Roll(pivot, axis, p0, v0, g), Spherical(pivot, p_s, v_s, g), tau)
+
+    return jax.vmap(one)(spherical, seg.pivot, axis, p0, v0, seg.p0, seg.v0, tau)
 
 
 def sample(seg: Segment, d: Decision, law: AbstractContactLaw, c, g, t, rolls: bool = False):
