@@ -210,10 +210,11 @@ def top_level() -> bool:
 
 def signature(tree) -> tuple:
     """What a compiled program depends on in ``tree`` (arguments): its structure, the shape
-    and dtype of every array and the value of every other leaf (static, as ``filter_jit``
-    treats it)."""
+    and dtype of every array (or ``jax.ShapeDtypeStruct``) and the value of every other
+    leaf (static, as ``filter_jit`` treats it)."""
     leaves, structure = jax.tree.flatten(tree)
-    return structure, tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves)
+    return structure, tuple((x.shape, x.dtype) if eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct) else x
+                            for x in leaves)
 
 
 def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] = FAST_COMPILE,
@@ -232,7 +233,13 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
     first call, as long as that first call took (compile included): the ski-rental rule,
     which never spends more than about twice what knowing the number of calls in advance
     would. Under that rule top-level calls wait for their results (to time them) until
-    their program moves on."""
+    their program moves on.
+
+    The wrapper's ``ahead(*args, **kwargs)`` (with ``static_argnames`` and the ski-rental
+    rule) lowers the quick program of a signature not seen yet, whose arguments may be
+    ``jax.ShapeDtypeStruct``, and returns ``(out_info, compile)``, else None: ``compile()``
+    compiles it, on any thread (XLA releases the GIL, so programs compile side by side),
+    and the top-level call finds it compiled; the time spent counts as that call's."""
     if fun is None:
         return functools.partial(jit, options=options, static_argnames=static_argnames, optimised=optimised,
                                  tier_up=tier_up)
@@ -246,20 +253,24 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
     top = fast = None
     spent = {}  # signature -> seconds of its quick program's calls (the first, the rest), or calls; None once optimised
 
-    @functools.wraps(fun)
-    def call(*args, **kwargs):
-        nonlocal top, fast
-        if not top_level():
-            return nested(*args, **kwargs)
+    def quick():
+        nonlocal top
         if top is None:
             top = wrap(compiler_options=compile_options(options))
+        return top
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        nonlocal fast
+        if not top_level():
+            return nested(*args, **kwargs)
         if optimised is None:
-            return top(*args, **kwargs)
+            return quick()(*args, **kwargs)
         key = signature((args, kwargs))
         try:
             clock = spent.setdefault(key, [0.0, 0.0])
         except TypeError:  # (a static leaf that cannot be hashed: filter_jit will say so)
-            return top(*args, **kwargs)
+            return quick()(*args, **kwargs)
         if clock is None:
             if fast is None:
                 fast = wrap(compiler_options=compile_options(optimised))
@@ -268,12 +279,30 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
             clock[0] += 1
             if clock[0] >= tier_up:
                 spent[key] = None
-            return top(*args, **kwargs)
+            return quick()(*args, **kwargs)
         start = time.perf_counter()
-        out = jax.block_until_ready(top(*args, **kwargs))
+        out = jax.block_until_ready(quick()(*args, **kwargs))
         clock[bool(clock[0])] += time.perf_counter() - start
         if clock[1] >= clock[0]:
             spent[key] = None
         return out
 
+    def ahead(*args, **kwargs):
+        if static_argnames is None or optimised is None or tier_up is not None:
+            raise TypeError("ahead needs static_argnames and the ski-rental rule (optimised, no tier_up)")
+        key = signature((args, kwargs))
+        if key in spent:
+            return None
+        start = time.perf_counter()
+        lowered = quick().trace(*args, **kwargs).lower()
+        clock = spent[key] = [time.perf_counter() - start, 0.0]
+
+        def compile_():
+            begin = time.perf_counter()
+            lowered.compile()
+            clock[0] += time.perf_counter() - begin
+
+        return lowered.out_info, compile_
+
+    call.ahead = ahead
     return call

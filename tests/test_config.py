@@ -276,3 +276,45 @@ def test_a_quick_program_tiers_up_once_it_has_run_as_long_as_its_first_call(monk
     compiled.clear()
     jax.make_jaxpr(lambda x: program(x, 3))(np.ones(2))  # inside a trace: no options of its own
     assert compiled == [None]
+
+
+def test_a_program_compiled_ahead_is_the_one_its_first_call_runs_and_its_compile_counts(monkeypatch):
+    """``jit(...).ahead``: the quick program of a signature not seen yet, lowered from shapes
+    alone, compiled on another thread; the call then neither traces nor compiles it again,
+    and the time spent ahead is its first call's for the ski-rental rule (here 2 s ahead,
+    then 0.5 s per call: the optimised program, compiled anew, from the fifth call on)."""
+    import threading
+
+    traces, compiles = [], []
+
+    def fun(x, n):
+        traces.append(x.shape)
+        return x * n
+
+    def count(name, _, **__):
+        if name == "/jax/core/compile/backend_compile_duration":
+            compiles.append(name)
+
+    quick, optimised = (("xla_backend_optimization_level", 0),), (("xla_backend_optimization_level", 1),)
+    program = _config.jit(fun, options=quick, optimised=optimised, static_argnames=("n",))
+    clock = iter([0.0, 1.0, 1.0, 2.0] + [t for k in range(1, 10) for t in (10.0 * k, 10.0 * k + 0.5)])
+    _config.compile_options(quick), _config.compile_options(optimised)  # (their probes compile too)
+    monkeypatch.setattr(_config.time, "perf_counter", lambda: next(clock))
+    jax.monitoring.register_event_duration_secs_listener(count)
+    try:
+        shapes, compile_ = program.ahead(jax.ShapeDtypeStruct((2,), jnp.float64), n=3)
+        assert shapes.shape == (2,) and shapes.dtype == jnp.float64
+        thread = threading.Thread(target=compile_)
+        thread.start()
+        thread.join()
+        assert len(compiles) == 1
+        assert program.ahead(np.ones(2), n=3) is None  # (seen: nothing to compile ahead)
+        for _ in range(4):
+            np.testing.assert_array_equal(program(np.ones(2), n=3), [3.0, 3.0])
+        assert traces == [(2,)] and len(compiles) == 1  # four calls of the program compiled ahead
+        np.testing.assert_array_equal(program(np.ones(2), n=3), [3.0, 3.0])
+        assert len(compiles) == 2  # 4 x 0.5 s >= 2 s: the optimised program
+    finally:
+        jax.monitoring.unregister_event_duration_listener(count)
+    with pytest.raises(TypeError, match="ahead needs static_argnames"):
+        _config.jit(fun, options=quick).ahead(np.ones(2), 3)

@@ -280,3 +280,38 @@ def test_the_primal_runs_the_plan_alone_and_derivatives_replay_it(stairs_air):
 
     value = jax.jit(lambda p: jax.jvp(final, (p,), (p,))[0])(params)
     np.testing.assert_array_equal(value, jax.jit(final)(params))
+
+
+def test_a_top_level_call_runs_the_step_loop_and_what_follows_as_two_programs_compiled_at_once(stairs_air):
+    """At top level the ODE path is two programs (``_simulate._ode_plans``, the step loops,
+    and ``_ode_finish``, samples, events and packing), both compiled on the first call, the
+    step loop's on a thread while the second is traced from its shapes alone; their rows
+    are those of the one program that a user's jit gets, compiled with the same options,
+    to rounding (the two compile into different fusions)."""
+    from estim.forward import _simulate
+
+    params = seed_params(stairs_air, vx0=1.05)  # (a signature of its own: compiled here)
+    ts = np.linspace(0.0, 2.3, 31)
+    args = []
+    apart = _simulate._solve_ode_apart
+
+    def spy(*a):
+        args.append(a)
+        return apart(*a)
+
+    _simulate._solve_ode_apart = spy
+    try:
+        traj = estim.simulate(stairs_air, params, 2.3, ts=ts)
+    finally:
+        _simulate._solve_ode_apart = apart
+    (scene, prm, t_end, ts_, settings, max_events, checks, keep), = args
+    # Both programs were compiled ahead: a second call compiles neither again.
+    assert _simulate._ode_plans.ahead(scene, prm, t_end, settings) is None
+    plans = _simulate._ode_plans(scene, prm, t_end, settings)
+    assert _simulate._ode_finish.ahead(scene, prm, t_end, ts_, settings, plans, max_events=max_events,
+                                       checks=checks, keep=keep) is None
+    one = _simulate.solve_ode(scene, prm, t_end, ts_, settings, max_events, checks, keep)
+    np.testing.assert_array_equal(traj.flags, one.flags)
+    np.testing.assert_allclose(traj.record, one.record, rtol=1e-14, atol=1e-15)
+    assert np.asarray(traj.events.count).tolist() == np.asarray(one.events.count).tolist()
+    assert np.all(np.asarray(traj.complete))

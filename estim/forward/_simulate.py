@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 from collections.abc import Sequence
 
 import diffrax
@@ -175,7 +176,8 @@ def simulate(
         rk = solver or diffrax.Tsit5()
         settings = OdeSettings(rk, jnp.asarray(rtol, dtype=jnp.float64), jnp.asarray(atol, dtype=jnp.float64),
                                jnp.asarray(contact_slack, dtype=jnp.float64), int(max_steps))
-        traj = solve_ode(scene, params, t_end, ts, settings, max_events, throw and traced, keep)
+        solve = solve_ode if traced else _solve_ode_apart
+        traj = solve(scene, params, t_end, ts, settings, max_events, throw and traced, keep)
         message = _INCOMPLETE_ODE
     else:
         traj = solve_closed_form(scene, params, t_end, ts, max_segments, max_events, throw and traced, keep,
@@ -207,14 +209,50 @@ _INCOMPLETE_ODE = (
 
 @jit(options=ODE_COMPILE, optimised=ODE_OPTIMISED)
 def solve_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
-    _ode.TRACE_COUNT += 1
-    # Ball by ball, as on the closed-form path: each ball's step loop is a loop of its own
-    # (vectorised over balls, every step of every ball ran the branches of all: the seed's
-    # three balls in still air took 21.6 ms instead of 2.4), its replay runs only the steps
-    # it uses (estim.forward._scan), and it writes only the parts it keeps, packed. (A ball
-    # with bad inputs still ends: its step loop is bounded by max_steps.)
+    """The ODE path as one program (what a user's jit or grad gets). Ball by ball, as on
+    the closed-form path: each ball's step loop is a loop of its own (vectorised over
+    balls, every step of every ball ran the branches of all: the seed's three balls in
+    still air took 21.6 ms instead of 2.4), its replay runs only the steps it uses
+    (estim.forward._scan), and it writes only the parts it keeps, packed. (A ball with bad
+    inputs still ends: its step loop is bounded by max_steps.)"""
     return _packed_balls(scene, params, t_end, ts, checks, keep, _INCOMPLETE_ODE,
                          lambda prm: _ode.ball_parts(scene, prm, t_end, ts, settings, max_events, keep))
+
+
+# At top level the ODE path is two programs, each ball's step loop (``_ode_plans``) and
+# what follows from its plan (``_ode_finish``: samples, events, packing), which a first
+# call compiles side by side, the second from the first's shapes (``_solve_ode_apart``).
+# The seed's three balls in still air, every part kept: 2.7-2.9 s to the first result as
+# one program, 1.9-2.3 s as two (of which the step loop is 0.55 s of tracing and 1.3 s of
+# compiling; 2-core development machine, AMD EPYC, session 37). The values are the one
+# program's: the second program takes the plan's nodes as they are (``_ode.nodes_of``).
+@jit(options=ODE_COMPILE, optimised=ODE_OPTIMISED, static_argnames=())
+def _ode_plans(scene, params, t_end, settings):
+    return map_balls(lambda prm: _ode.plan(scene, prm, t_end, settings), flat_params(params))
+
+
+@jit(options=ODE_COMPILE, optimised=ODE_OPTIMISED, static_argnames=("max_events", "checks", "keep"))
+def _ode_finish(scene, params, t_end, ts, settings, plans, max_events, checks, keep):
+    return _packed_balls(scene, params, t_end, ts, checks, keep, _INCOMPLETE_ODE,
+                         lambda prm, pl: _ode.finish(scene, prm, t_end, ts, settings, max_events, pl, pl.n_steps, keep),
+                         plans)
+
+
+def _solve_ode_apart(scene, params, t_end, ts, settings, max_events, checks, keep):
+    """``solve_ode`` as its two programs; on their first call both compile at once, the
+    step loop's on a thread of its own while the second is traced and compiled."""
+    ahead = _ode_plans.ahead(scene, params, t_end, settings)
+    if ahead is not None:
+        shapes, compile_plans = ahead
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            compiling = pool.submit(compile_plans)
+            after = _ode_finish.ahead(scene, params, t_end, ts, settings, shapes, max_events=max_events,
+                                      checks=checks, keep=keep)
+            if after is not None:
+                after[1]()
+            compiling.result()
+    plans = _ode_plans(scene, params, t_end, settings)
+    return _ode_finish(scene, params, t_end, ts, settings, plans, max_events=max_events, checks=checks, keep=keep)
 
 
 def _check_effects(scene: Scene, params: Params) -> None:
@@ -268,15 +306,15 @@ def solve_closed_form(scene, params, t_end, ts, max_segments, max_events, checks
     return _packed_balls(scene, params, t_end, ts, checks, keep, _INCOMPLETE, parts_of)
 
 
-def _packed_balls(scene, params, t_end, ts, checks, keep, incomplete: str, parts_of) -> Trajectory:
-    """One ball at a time (``estim.forward._balls.map_balls``): ``parts_of(params)``, the
-    ball's Trajectory parts, packed into its rows; with ``checks``, the argument checks and
-    completion of every ball, raised once for the whole call (``incomplete``: the message
-    of a ball left incomplete)."""
+def _packed_balls(scene, params, t_end, ts, checks, keep, incomplete: str, parts_of, *per_ball) -> Trajectory:
+    """One ball at a time (``estim.forward._balls.map_balls``): ``parts_of(params, *items)``,
+    the ball's Trajectory parts (items: its entries of ``per_ball``), packed into its rows;
+    with ``checks``, the argument checks and completion of every ball, raised once for the
+    whole call (``incomplete``: the message of a ball left incomplete)."""
     layouts = []  # the layout of a ball's rows, found while tracing its loop body
 
-    def ball(prm):
-        parts = parts_of(prm)
+    def ball(prm, *items):
+        parts = parts_of(prm, *items)
         layouts.append(layout_of(parts, 0))
         rows = pack(parts, layouts[-1])
         if not checks:
@@ -286,7 +324,7 @@ def _packed_balls(scene, params, t_end, ts, checks, keep, incomplete: str, parts
         code = _input_code(scene, prm, t_end, ts)
         return rows + (jnp.where(code > 0, code, jnp.where(parts["complete"], 0, len(_INPUT_CHECKS) + 1)),)
 
-    record, flags, *code = map_balls(ball, flat_params(params))
+    record, flags, *code = map_balls(ball, flat_params(params), *per_ball)
     if keep != frozenset(KEEP):  # (check_keep made keep a frozenset)
         # For one ball XLA replaces the loop by its body and drops whatever the caller
         # leaves unused: with every part kept, that is what lets a function of the final
