@@ -223,9 +223,10 @@ def solve_ode(scene, params, t_end, ts, settings, max_events, checks, keep):
 # what follows from its plan (``_ode_finish``: samples, events, packing), which a first
 # call compiles side by side, the second from the first's shapes (``_solve_ode_apart``).
 # The seed's three balls in still air, every part kept: 2.7-2.9 s to the first result as
-# one program, 1.9-2.3 s as two (of which the step loop is 0.55 s of tracing and 1.3 s of
-# compiling; 2-core development machine, AMD EPYC, session 37). The values are the one
-# program's: the second program takes the plan's nodes as they are (``_ode.nodes_of``).
+# one program, 1.75-2.04 s as two (of which the step loop is 0.55 s of tracing and 1.35 s
+# of compiling; 2-core development machine, AMD EPYC, session 37). The values are the one
+# program's to rounding: the second program takes the plan's nodes as they are
+# (``_ode.nodes_of``), and the two compile into other fusions than the one program.
 @jit(options=ODE_COMPILE, optimised=ODE_OPTIMISED, static_argnames=())
 def _ode_plans(scene, params, t_end, settings):
     return map_balls(lambda prm: _ode.plan(scene, prm, t_end, settings), flat_params(params))
