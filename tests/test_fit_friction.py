@@ -11,6 +11,7 @@ shots compiles one fit program; the command line (one shot) another.
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -114,37 +115,19 @@ def test_command_line_fits_a_shot_on_the_table_tennis_scene(tmp_path, capsys):
 
 
 def mujoco_shot(damping=0.1, noise=0.001):
-    """The topspin drive of ``SHOTS`` (lifted to clear MuJoCo's net) in MuJoCo's own physics:
-    the table-tennis scene with the ball's ellipsoid fluid model (drag and Magnus;
-    ``fluidshape="ellipsoid"``) and a frictional contact with the table (``condim="6"``,
-    friction 0.2, elliptic cone, impratio 100, ``solref="0.0005 damping"``), stepped at
-    20 us and sampled at 180 Hz with ``noise`` (m). Returns the times, the positions, the
-    release spin and the restitution MuJoCo's contact shows (normal speed after over
-    before)."""
-    import mujoco
+    """The topspin drive of ``SHOTS`` (lifted to clear MuJoCo's net) in MuJoCo's own physics
+    (``docs/scripts/camera_views.py``'s ``mujoco_shot``: the ball's ellipsoid fluid model at
+    MuJoCo's default coefficients, drag and Magnus; a frictional contact with the table,
+    friction 0.2, ``solref="0.0005 damping"``), sampled at 180 Hz with ``noise`` (m).
+    Returns the times, the positions, the release spin and the restitution MuJoCo's
+    contact shows (normal speed after over before)."""
+    sys.path.insert(0, str(ROOT / "docs" / "scripts"))
+    import camera_views
 
-    contact = f'condim="6" friction="0.2 0 0" solref="0.0005 {damping}"'
-    xml = TABLE.read_text().replace('timestep="0.0005"', 'timestep="2e-5" cone="elliptic" impratio="100"')
-    xml = xml.replace('shellinertia="true"', f'shellinertia="true" fluidshape="ellipsoid" {contact}')
-    xml = xml.replace('<geom name="table" type="box"', f'<geom name="table" type="box" {contact}')
-    model = mujoco.MjModel.from_xml_string(xml)
-    data = mujoco.MjData(model)
     spin = np.array([-150.0, 10.0, 20.0])
-    data.qpos[:3] = (0.2, -1.6, 0.2)
-    data.qvel[:] = [-0.3, 8.0, 2.6, *spin]  # the free joint's angular velocity, body frame = world at release
     t = np.arange(0.0, T_END, 1 / HZ)
-    out, before, after = [], None, None
-    while len(out) < t.size:
-        if data.time >= t[len(out)] - 1e-12:
-            out.append(data.qpos[:3].copy())
-        vz = float(data.qvel[2])
-        mujoco.mj_step(model, data)
-        if data.ncon and before is None:
-            before = vz
-        if before is not None and after is None and not data.ncon:
-            after = float(data.qvel[2])
-    pos = np.array(out) + np.random.default_rng(5).normal(0.0, noise, (t.size, 3))
-    return t, pos, spin, -after / before
+    pos, e = camera_views.mujoco_shot((0.2, -1.6, 0.2), (-0.3, 8.0, 2.6), spin, t, damping=damping)
+    return t, pos + np.random.default_rng(5).normal(0.0, noise, (t.size, 3)), spin, e
 
 
 @pytest.mark.slow

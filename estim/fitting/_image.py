@@ -90,6 +90,26 @@ FARTHER = 1.05
 # path more than DEPTH_LIMIT away on average, is reported as a second solution: the pixels
 # tell the two apart by less than a likelihood ratio of e^2.
 AMBIGUOUS = 2.0
+# A fit whose values lie more than DOUBT standard deviations from one of its priors is
+# doubted: one camera's pixels fix e and mu only loosely, so a fit pulled that far from what
+# is known of the ball is rather the fit of a wrong path, a depth that gravity's size
+# allowed (MuJoCo's shots seen from in front, the ball coming at the camera: the start read
+# a short drop near the bounce for a long flight, and the fit ended at e = 0.2, 96 cm off,
+# 13 sd from the prior; or the start was right and its fit ran to e = 0.02 while the other
+# start's ran 3 m off, beyond the table, at a loss above the truth's). The first start is
+# then moved along the first camera's rays by each pair of DEEPER factors in turn (the
+# second only while the best fit is doubted); the best fit of all is kept (1.25 and 0.8
+# reached those two shots' truths, 3 and 10 cm off).
+DOUBT = 3.0
+# ... as is a fit whose robust loss (``_loss``) averages more than this per pixel coordinate:
+# a typical miss of 2.5 noise levels (a fit at the noise averages about 0.3), a path that
+# explains the frames no better than one that met the net on its way (the other shot
+# above, whose two starts' fits ended at 3.3 per coordinate and 3 m off).
+MISFIT = 1.0
+DEEPER = ((1.25, 0.8), (1.25**2, 0.8**2))
+# A start's first flight may touch its bounce's surface this long before the bounce (s),
+# whose time is read off the pixels (``_flies_through``).
+NEAR_BOUNCE = 0.01
 
 
 def default_image_free(scene: Scene, n_cameras: int) -> tuple[str, ...]:
@@ -137,56 +157,103 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         raise ValueError(f"{len(tracks.cameras)} cameras: an image fit takes at most {registry.MAX_CAMERAS}")
     say = progress or (lambda msg: None)
     given = fixed or {}
-    data, images, ball_of, starts = {}, {}, {}, {}
-    arrays = CameraArrays.of(tracks.cameras)
+    recs_of, t0_of = {}, {}
     for b in tracks.balls:
         scene.ball(b)  # KeyError naming the scene's balls
-        t0 = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
+        t0 = t0_of[b] = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
         try:
             recs = reconstructions(tracks, b, scene, alternatives=STARTS)
         except ValueError as err:
             raise ValueError(f"ball {b!r}: {err}") from None
-        recs = [_inside_out(rec, scene, b, tracks) for rec in recs]
+        recs = [_released_outside(_inside_out(rec, scene, b, tracks), scene, b, tracks, t0) for rec in recs]
         if len(recs) < STARTS:
             farther = recs[0].scaled(FARTHER, tracks.cameras[0].centre)
             if not _released_inside(farther, scene, b, t0):
                 recs.append(farther)
-        ok = tracks.valid(b)
-        t, first = np.unique(tracks.t[b][ok], return_index=True)
-        # Always STARTS keys per ball (the last start repeated where there are fewer), so
-        # that every shot of a given length runs the same compiled program.
-        for j in range(STARTS):
-            key = _key(b, j)
-            rec = recs[min(j, len(recs) - 1)]
-            data[key] = (t, rec.position[ok][first])
-            starts[key] = start_values(rec, scene, b, t0)
-            images[key] = ImageRows(t=tracks.t[b], uv=tracks.uv[b], view=tracks.view[b], cameras=arrays,
-                                    noise=tracks.noise(b), initial=_initial(rec, starts[key]))
-            ball_of[key] = b
+        recs_of[b] = recs
         say(f"{b}: {len(recs)} start(s) in 3-D from {len(tracks.cameras)} camera(s): {len(recs[0].bounces)} "
             f"bounce(s), rays missed by {recs[0].ray_rms * 1e3:.2f} mrad rms")
     free = registry.expand(default_image_free(scene, len(tracks.cameras)) if free is None else free)
-    # The path's own starts for the fitted parameters (fixed values double as starts);
-    # what the caller holds or gives wins.
-    fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
-    every, units = _fit_all(scene, data, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
-                            max_segments=max_segments, progress=progress, balls=ball_of, images=images, explore=True,
-                            prior=prior, graduated=GRADUATED)
-    losses = {k: _loss(bf) for k, bf in every.balls.items()}
-    chosen = {b: min((_key(b, j) for j in range(STARTS)), key=losses.__getitem__) for b in tracks.balls}
-    result = FitResult({b: every.balls[k] for b, k in chosen.items()})
+    options = dict(free=free, loss=loss, steps=steps, restarts=restarts, max_segments=max_segments,
+                   progress=progress, prior=prior)
+    fits = _fit_starts(scene, tracks, recs_of, t0_of, given, 0, **options)
+    for stage, factors in enumerate(DEEPER, 1):
+        # First where any start's fit is doubted (the others may have run off as well, to
+        # paths the priors cannot tell), then where the best one still is.
+        doubted = [b for b in tracks.balls if any(_doubted(f[0]) for f in _of(fits, b)) if stage == 1
+                   or _doubted(min(_of(fits, b), key=lambda f: f[1])[0])]
+        moved = {b: [r for r in (recs_of[b][0].scaled(f, tracks.cameras[0].centre) for f in factors)
+                     if not _released_inside(r, scene, b, t0_of[b])] for b in doubted}
+        moved = {b: recs for b, recs in moved.items() if recs}
+        if not moved:
+            break
+        say(f"{', '.join(moved)}: a fit doubted (a prior more than {DOUBT:g} sd off, or a robust loss above "
+            f"{MISFIT:g} per pixel coordinate); starts moved by {' and '.join(f'{f:.2f}' for f in factors)} "
+            "along the rays")
+        fits.update(_fit_starts(scene, tracks, moved, t0_of, given, stage * STARTS, **options))
+    chosen = {b: _choose(_of(fits, b), recs_of[b][0]) for b in tracks.balls}
+    result = FitResult({b: fit[0] for b, fit in chosen.items()})
     for b, bf in result.balls.items():
         if effects:
-            attach_effects(scene, bf, units.problems[units.names.index(chosen[b])])
+            attach_effects(scene, bf, chosen[b][2])
         bf.ball = b
         bf.depth = _depth_report(bf, tracks.cameras[0])
-        bf.depth["alternative"] = _alternative(bf, losses[chosen[b]], [
-            (every.balls[_key(b, j)], losses[_key(b, j)]) for j in range(STARTS) if _key(b, j) != chosen[b]])
+        bf.depth["alternative"] = _alternative(bf, chosen[b][1], [f[:2] for f in _of(fits, b) if f[0] is not bf])
         for note in (bf.depth["note"], (bf.depth["alternative"] or {}).get("note", "")):
             if note:
                 bf.notes.append(note)
     result.source = tracks.source
     return result
+
+
+def _fit_starts(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, given: dict, first: int,
+                free, **options) -> dict[str, tuple]:
+    """Fit each ball from its start paths ``recs_of[ball]`` side by side (``_fit_all``),
+    always ``STARTS`` of them per ball (the last repeated where there are fewer: every shot
+    of a given length then runs the same compiled program), under the keys ``_key(ball,
+    first + j)``. Returns each key's ``(fit, _loss, problem, ball)``."""
+    data, images, ball_of, starts = {}, {}, {}, {}
+    arrays = CameraArrays.of(tracks.cameras)
+    for b, recs in recs_of.items():
+        ok = tracks.valid(b)
+        t, at = np.unique(tracks.t[b][ok], return_index=True)
+        for j in range(STARTS):
+            key = _key(b, first + j)
+            rec = recs[min(j, len(recs) - 1)]
+            data[key] = (t, rec.position[ok][at])
+            starts[key] = start_values(rec, scene, b, t0_of[b])
+            images[key] = ImageRows(t=tracks.t[b], uv=tracks.uv[b], view=tracks.view[b], cameras=arrays,
+                                    noise=tracks.noise(b), initial=_initial(rec, starts[key]))
+            ball_of[key] = b
+    # The path's own starts for the fitted parameters (fixed values double as starts);
+    # what the caller holds or gives wins.
+    fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
+    every, units = _fit_all(scene, data, free=free, fixed=fixed, balls=ball_of, images=images, explore=True,
+                            graduated=GRADUATED, **options)
+    return {k: (bf, _loss(bf), units.problems[units.names.index(k)], ball_of[k]) for k, bf in every.balls.items()}
+
+
+def _choose(fits: list[tuple], start) -> tuple:
+    """The fit to keep of a ball's ``(fit, loss, ...)``: of those within ``AMBIGUOUS`` of the
+    least loss (paths the pixels cannot tell apart), the one nearest the start read from the
+    pixels through the physics (``start``, a ``Reconstruction``: its bounces on the scene's
+    surfaces fix a depth that a moved start's fit may leave for a path under the table or
+    beyond it, bouncing on the floor, at a loss as low)."""
+    least = min(f[1] for f in fits)
+    near = [f for f in fits if f[1] - least < AMBIGUOUS]
+    return min(near, key=lambda f: float(np.nanmean(np.linalg.norm(f[0].model_position - start.position, axis=1))))
+
+
+def _of(fits: dict, ball: str) -> list[tuple]:
+    """The ``(fit, loss, problem, ball)`` of every start of ``ball``."""
+    return [f for f in fits.values() if f[3] == ball]
+
+
+def _doubted(bf) -> bool:
+    """Whether a fit sits more than ``DOUBT`` standard deviations from one of its priors, or
+    misses its pixels by more than ``MISFIT`` of robust loss per coordinate on average."""
+    return (any(abs(bf.values[n] - mean) > DOUBT * sd for n, (mean, sd) in bf.prior.items())
+            or not _loss(bf) <= MISFIT * max(int(np.isfinite(bf.residuals).sum()), 1))
 
 
 def start_values(rec, scene: Scene, ball: str, t0: float = 0.0) -> dict[str, float]:
@@ -241,6 +308,27 @@ def _inside_out(rec, scene: Scene, ball: str, tracks: ImageTracks):
     return rec.scaled(min(max(factor, 0.05), 20.0), centre)
 
 
+def _released_outside(rec, scene: Scene, ball: str, tracks: ImageTracks, t0: float = 0.0):
+    """A start path released inside a solid (:func:`_released_inside`) or whose first flight
+    rises through the solid it bounces on (:func:`_flies_through`), scaled about the first
+    camera's centre (its pixels stay) by the factor nearest 1 after which neither holds (a
+    first flight seen end-on, its depth held only by the bounce's ray, can be read below
+    the table; just under it is not out of it). Any other path, or one that no factor
+    between 1/20 and 20 frees, is returned as it is."""
+    if not (_released_inside(rec, scene, ball, t0) or _flies_through(rec, scene, ball, t0)):
+        return rec
+    surface = inside(np, scene, rec.bounce_points[:1], np.array([1.5 * scene.ball(ball).radius]))
+    centre = tracks.cameras[0].centre
+    for step in range(1, 100):  # 1 -+ 1%, 2%, ...: the nearest depth first
+        for factor in (1.0 - 0.01 * step, 1.0 + 0.01 * step, 20.0 ** (step / 99) if step > 50 else None):
+            if not factor or factor < 0.05:
+                continue
+            scaled = rec.scaled(factor, centre)
+            if not (_released_inside(scaled, scene, ball, t0) or _flies_through(scaled, scene, ball, t0, surface)):
+                return scaled
+    return rec
+
+
 def _initial(rec, values: dict[str, float]) -> Initial:
     """The fit's ``Initial`` of a start path: its starting values and bounces."""
     v = np.array([values["vx0"], values["vy0"], 0.0])
@@ -271,6 +359,25 @@ def _released_inside(rec, scene: Scene, ball: str, t0: float = 0.0) -> bool:
     return bool(in_box.any() or in_plane.any())
 
 
+def _flies_through(rec, scene: Scene, ball: str, t0: float = 0.0, surface=None) -> bool:
+    """Whether a start path's first flight, from the release at ``t0`` until ``NEAR_BOUNCE``
+    before its first bounce, runs half the ball's radius into the solid it bounces on: a
+    path released below the table that rises through it to bounce on its top is no start.
+    (Other solids it may graze, as a start moved along the rays grazes the net: the fit's
+    physics takes it off them.) ``surface``: that solid as ``inside``'s masks (the boxes'
+    and the planes'), by default the one the path's bounce point touches (a path moved along
+    the rays moves its bounce off the surface). A path without a bounce: ``_inside_out``."""
+    if not rec.bounces:
+        return False
+    radius = scene.ball(ball).radius
+    box, plane = surface or inside(np, scene, rec.bounce_points[:1], np.array([1.5 * radius]))
+    # The flight's own curve every 5 ms: between two frames a path can cross a thin solid.
+    times = np.arange(t0, max(rec.bounces[0] - NEAR_BOUNCE, t0) + 1e-9, 0.005)
+    flight = np.stack([rec.flights[0, 0] + _back(rec, t) for t in times])
+    in_box, in_plane = inside(np, scene, flight, np.full(len(flight), 0.5 * radius))
+    return bool((in_box & box).any() or (in_plane & plane).any())
+
+
 def _loss(bf) -> float:
     """How well a start's fit explains its pixels, to choose between starts: the robust
     loss of its residuals at the pixels' noise level (the same scale for every start), and
@@ -281,7 +388,8 @@ def _loss(bf) -> float:
 
 def _alternative(bf, loss: float, others) -> dict | None:
     """The nearest rival of the chosen fit among the other starts' ``(fit, loss)``: one
-    whose loss is within ``AMBIGUOUS`` of ``loss`` and whose path lies more than
+    whose loss is within ``AMBIGUOUS`` of ``loss`` (above it, or below: ``_choose``) and
+    whose path lies more than
     ``DEPTH_LIMIT`` from the chosen one on average (a second solution that the pixels
     cannot rule out); ``None`` without one."""
     rivals = []
@@ -294,7 +402,7 @@ def _alternative(bf, loss: float, others) -> dict | None:
     gap, distance, other = min(rivals, key=lambda r: r[0])
     return {"distance_m": distance, "loss_difference": gap, "values": dict(other.values),
             "note": f"a second path, {distance * 100:.0f} cm from this one on average (e = {other.values['e']:.3f}), "
-                    f"explains the pixels almost as well (robust loss {gap:+.2f}): one camera cannot tell them "
+                    f"explains the pixels about as well (robust loss {gap:+.2f}): one camera cannot tell them "
                     "apart; add a camera, or more frames"}
 
 
