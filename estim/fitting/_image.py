@@ -180,8 +180,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     for stage, factors in enumerate(DEEPER, 1):
         # First where any start's fit is doubted (the others may have run off as well, to
         # paths the priors cannot tell), then where the best one still is.
-        doubted = [b for b in tracks.balls if any(_doubted(f[0]) for f in _of(fits, b)) if stage == 1
-                   or _doubted(min(_of(fits, b), key=lambda f: f[1])[0])]
+        doubted = [b for b in tracks.balls if any(map(_doubted, _of(fits, b))) if stage == 1
+                   or _doubted(min(_of(fits, b), key=lambda f: f[1]))]
         moved = {b: [r for r in (recs_of[b][0].scaled(f, tracks.cameras[0].centre) for f in factors)
                      if not _released_inside(r, scene, b, t0_of[b])] for b in doubted}
         moved = {b: recs for b, recs in moved.items() if recs}
@@ -249,11 +249,13 @@ def _of(fits: dict, ball: str) -> list[tuple]:
     return [f for f in fits.values() if f[3] == ball]
 
 
-def _doubted(bf) -> bool:
-    """Whether a fit sits more than ``DOUBT`` standard deviations from one of its priors, or
-    misses its pixels by more than ``MISFIT`` of robust loss per coordinate on average."""
+def _doubted(fit: tuple) -> bool:
+    """Whether a start's ``(fit, loss, ...)`` sits more than ``DOUBT`` standard deviations
+    from one of its priors, or misses its pixels by more than ``MISFIT`` of robust loss per
+    coordinate on average."""
+    bf, loss = fit[:2]
     return (any(abs(bf.values[n] - mean) > DOUBT * sd for n, (mean, sd) in bf.prior.items())
-            or not _loss(bf) <= MISFIT * max(int(np.isfinite(bf.residuals).sum()), 1))
+            or not loss <= MISFIT * max(int(np.isfinite(bf.residuals).sum()), 1))
 
 
 def start_values(rec, scene: Scene, ball: str, t0: float = 0.0) -> dict[str, float]:
