@@ -110,6 +110,26 @@ def test_noise_free_pixels_give_the_path_exactly(table):
     assert np.abs(rec.position - points).max() < 1e-8
 
 
+def test_a_start_released_elsewhere_on_its_ray_is_re_aimed_at_its_bounce(table):
+    """``Reconstruction.released_at``: the first flight's reference point moves along its
+    camera ray by the factor, the flight's own curve (its acceleration kept) then passes
+    through the first bounce point at the bounce's time, its rows lie on that curve, and
+    the bounce and the later flights are as they were."""
+    t = np.arange(0.0, 0.6, 1 / 120)
+    points, tb = _vacuum_shot(t)
+    rec = reconstruct(_tracks((SIDE,), t, points, 0.0), "pingpong", table.with_air(None), bounces=(tb,))
+    moved = rec.released_at(1.3, SIDE.centre)
+    p, v, a = moved.flights[0, 0], moved.velocity(rec.refs[0], 0), moved.acceleration(0)
+    assert np.allclose(p - SIDE.centre, 1.3 * (rec.flights[0, 0] - SIDE.centre), atol=1e-12)
+    span = rec.bounces[0] - rec.refs[0]
+    assert np.allclose(p + v * span + 0.5 * a * span**2, rec.bounce_points[0], atol=1e-12)
+    first = t < rec.bounces[0]
+    dt = (t[first] - rec.refs[0])[:, None]
+    assert np.allclose(moved.position[first], p + v * dt + 0.5 * a * dt**2, atol=1e-12)
+    assert np.array_equal(moved.position[~first], rec.position[~first])
+    assert np.array_equal(moved.flights[1:], rec.flights[1:]) and moved.bounces == rec.bounces
+
+
 def test_the_surface_beneath_a_point(table):
     assert surface_height(table, 0.3, 0.5, 0.021, 0.02) == pytest.approx(0.0)  # the table top
     assert surface_height(table, 1.2, 0.5, -0.7, 0.02) == pytest.approx(-0.76)  # off the table: the floor

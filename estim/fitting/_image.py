@@ -182,7 +182,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         # paths the priors cannot tell), then where the best one still is.
         doubted = [b for b in tracks.balls if any(map(_doubted, _of(fits, b))) if stage == 1
                    or _doubted(min(_of(fits, b), key=lambda f: f[1]))]
-        moved = {b: [r for r in (recs_of[b][0].scaled(f, tracks.cameras[0].centre) for f in factors)
+        moved = {b: [r for r in (recs_of[b][0].released_at(f, tracks.cameras[0].centre) for f in factors)
                      if not _released_inside(r, scene, b, t0_of[b])] for b in doubted}
         moved = {b: recs for b, recs in moved.items() if recs}
         if not moved:

@@ -130,6 +130,28 @@ class Reconstruction:
                                    bounce_points=c + factor * (self.bounce_points - c), flights=flights,
                                    depth=factor * self.depth)
 
+    def released_at(self, factor: float, centre) -> Reconstruction:
+        """The path with its first flight's reference point moved along the ray from
+        ``centre`` by ``factor`` and the flight re-aimed at its first bounce: the velocity
+        that reaches the bounce point at the bounce's time under the flight's acceleration
+        (``(B - p - a dt^2 / 2) / dt``); the bounces and the later flights kept. The bounce
+        on a surface holds its depth better than a first flight seen along the rays, whose
+        velocity along them is as wrong as its depth. Without a bounce: :meth:`scaled`."""
+        if not self.bounces:
+            return self.scaled(factor, centre)
+        c = np.asarray(centre, dtype=np.float64)
+        a = self.acceleration(0)
+        p = c + factor * (self.flights[0, 0] - c)
+        span = self.bounces[0] - self.refs[0]
+        v = (self.bounce_points[0] - p - 0.5 * a * span**2) / span
+        flights = self.flights.copy()
+        flights[0, 0], flights[0, 1] = p, v
+        first = self.t < self.bounces[0]
+        dt = (self.t[first] - self.refs[0])[:, None]
+        position = self.position.copy()
+        position[first] = np.where(np.isfinite(position[first]), p + v * dt + 0.5 * a * dt**2, np.nan)
+        return dataclasses.replace(self, position=position, flights=flights)
+
     def acceleration(self, flight: int) -> np.ndarray:
         """The acceleration of ``flight`` (gravity, and in air its own besides)."""
         u = self.flights[flight]
