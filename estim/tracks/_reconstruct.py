@@ -26,8 +26,10 @@ flight then gets its own constant acceleration ``g + a_k``, still linear,
 
     X(t) = p + v dt + (g + a_k) dt^2 / 2,
 
-with a Gaussian prior ``a_k ~ N(0, AIR_PRIOR^2)`` per component (a row ``a_k / AIR_PRIOR``
-weighted like the flight's samples together): without it gravity's size would no longer fix the
+with a Gaussian prior on ``a_k`` (rows ``W a_k`` weighted like the flight's samples
+together, ``W`` the inverse of its standard deviations, :func:`air_weights`: ``AIR_PRIOR``
+along the flight, the drag coefficient's spread; across it, where the Magnus force acts,
+wider for a fast flight): without it gravity's size would no longer fix the
 scale, and the bounce on a surface of known height would be the only thing that does.
 
 At a bounce on a surface, friction changes the velocity along the surface by at most
@@ -62,10 +64,19 @@ __all__ = ["Reconstruction", "reconstruct", "reconstructions", "surface_height"]
 # ray (both in units of angle: metres over the distance from the camera).
 _TIE = 30.0
 _CUT = 5.0
+# The share of a path's rows whose misses a score caps at _CUT noise levels (outliers).
+OUTLIERS = 0.2
 # The prior's standard deviation of a flight's air acceleration about the drag at the
 # default coefficient (m/s^2): the Magnus force of a table-tennis ball at 6 m/s and 100
-# rad/s, and the drag coefficient's spread, are about this size.
+# rad/s, and the drag coefficient's spread, are about this size. The Magnus force, across
+# the flight, grows with the speed at a given spin (and harder hits spin more), so across
+# a faster flight the prior is wider in proportion to its speed above AIR_SPEED
+# (:func:`air_weights`): a 15 m/s drive with 280 rad/s of topspin bends under about 2 g,
+# 6 standard deviations of the slow prior, and its start, the bounce priced out, had read
+# one parabola through the bounce, 5 m off. Along the flight the prior stays AIR_PRIOR: a
+# flight seen head-on, wide there too, ran off along its rays (54 m/s^2 of extra drag).
 AIR_PRIOR = 5.0
+AIR_SPEED = 6.0
 # A box top narrower than this many ball radii (a net, a wall's top) is no bounce surface
 # for the start.
 NARROW = 4.0
@@ -202,14 +213,17 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
                     bounces: tuple[float, ...] | None = None, alternatives: int = 1) -> list[Reconstruction]:
     """The 3-D path of ``ball`` through its pixels (module docstring).
 
-    Bounces come from the pixels' cusps; where the rays still miss the path by more than
-    twice the pixels' noise (a bounce seen head-on makes no clear cusp), the bounce that
-    lowers the misfit most is added, at the sample time where it does, while it lowers the
-    misfit by a third or more. Then every bounce, a cusp's too, must earn its place the same
-    way: the one whose removal raises the misfit least goes while the misfit without it is
-    less than 1.5 times the misfit with it (a cusp read off noisy pixels, with the real
-    bounce added beside it, had led a fit to a path 2.6 m off). Each bounce time is then
-    refined between its neighbouring samples (golden-section search on the misfit).
+    Bounces come from the pixels' cusps. Every bounce, a cusp's too, must earn its place:
+    the one whose removal raises the misfit least goes while the misfit without it is less
+    than 1.5 times the misfit with it (a cusp read off noisy pixels, with the real bounce
+    added beside it, had led a fit to a path 2.6 m off). Where the rays then miss the path
+    by more than twice the pixels' noise (a bounce seen head-on makes no clear cusp), the
+    bounce that lowers the misfit most (tried at each sample and between each two, then
+    at its best time between the samples beside it) is added while it lowers the misfit
+    by a third or more; before any is in, two at once where they lower it by a third more
+    than one (a serve's). Pruned and added again until that changes nothing. Each bounce
+    time is then refined between its neighbouring samples (golden-section search on the
+    misfit, kept where it scores no worse).
 
     Each bounce is put on each of the scene's upward surfaces in turn (:func:`_on_surfaces`);
     the paths whose bounce points lie on their surfaces come first, and among those the
@@ -379,11 +393,14 @@ class _Rays:
         return x, keep, miss, depth
 
     def score(self, miss, x=None, bounces=()) -> float:
-        """The misfit of a path: the mean square of the rays' misses, each capped at 5 times
-        the noise (an outlier counts, but only so much), plus, in air, the prior's cost of
+        """The misfit of a path: the mean square of the rays' misses, the worst ``OUTLIERS``
+        of them capped at 5 times the noise (an outlier counts, but only so much), plus, in air, the prior's cost of
         the flights' accelerations (:func:`_solve`) per row; its square root (rad)."""
         noise = self.noise if np.isfinite(self.noise) else float(np.median(miss))
-        cost = np.sum(np.minimum(miss, _CUT * noise) ** 2)
+        # Only the worst OUTLIERS of the rows are capped: a path that calls most rows
+        # outliers (one parabola through a bounce, all its misses capped) is no cheap path.
+        capped = np.argsort(miss)[::-1][:int(OUTLIERS * miss.size)]
+        cost = np.sum(miss**2) - np.sum(miss[capped] ** 2 - np.minimum(miss[capped], _CUT * noise) ** 2)
         if x is not None:
             refs, ends = self.refs(bounces), np.concatenate([bounces, [self.t.max()]])
             flight = np.searchsorted(np.asarray(bounces), self.t, side="right")
@@ -391,8 +408,8 @@ class _Rays:
             for f, u in enumerate(flights):
                 n = np.sum(flight == f)
                 if u.shape[0] == 3:
-                    off = u[2] - self.drag(u[1] + 0.5 * (self.g + u[2]) * (ends[f] - refs[f]))
-                    cost += n * noise**2 * np.sum(off**2) / AIR_PRIOR**2
+                    middle = self.velocity_at(u, 0.5 * (ends[f] - refs[f]))
+                    cost += n * noise**2 * np.sum((air_weights(middle) @ (u[2] - self.drag(middle))) ** 2)
                 if f > 0:
                     slip = u[1] - self.velocity_at(flights[f - 1], bounces[f - 1] - refs[f - 1])
                     cost += n * noise**2 * np.sum(slip[:2] ** 2) / BOUNCE_PRIOR**2
@@ -418,26 +435,57 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
             return np.inf
         return rays.score(miss, x, tuple(candidate))
 
-    bounces = list(bounces)
-    current = score(bounces)
     times = np.unique(rays.t)
-    while not current <= 2.0 * rays.noise:
-        mids = 0.5 * (times[1:] + times[:-1])
-        trial = [(score(sorted(bounces + [b])), b) for b in mids if b not in bounces]
-        if not trial:
+    mids = 0.5 * (times[1:] + times[:-1])
+    # A bounce is tried between samples and at them: a drive's, seen from in front, fell on
+    # a frame, and neither midpoint beside it rebounds.
+    singles = np.union1d(mids, times[1:-1])
+
+    def prune(bounces, current):
+        # A bounce stays only if it earns its place as an added one must (lowering the
+        # misfit by a third), the cusps' included: a cusp read off noisy pixels is no
+        # bounce, and a bounce added beside it can be the real one.
+        while bounces:
+            best, k = min((score(bounces[:k] + bounces[k + 1:]), k) for k in range(len(bounces)))
+            if not best < 1.5 * current:
+                break
+            bounces, current = bounces[:k] + bounces[k + 1:], best
+        return bounces, current
+
+    def add(bounces, current):
+        while not current <= 2.0 * rays.noise:
+            trial = [(score(sorted(bounces + [b])), (b,)) for b in singles if b not in bounces]
+            best, added = min(trial) if trial else (np.inf, ())
+            if np.isfinite(best):
+                # The best bounce at its best time between the samples beside it, the next
+                # one then tried against it: a serve's first bounce at the midpoint 20 ms
+                # off, or its second 10 ms off, lowered the misfit by less than a third.
+                lo, hi = times[times < added[0]][-1], times[times > added[0]][0]  # (the samples beside it)
+                refined = _golden(lambda b, bounces=bounces: score(sorted(bounces + [b])), lo, hi)
+                best, added = min((best, added), (score(sorted(bounces + [refined])), (refined,)))
+            if not bounces:
+                # Two bounces at once, where they lower the misfit by a third more than the
+                # best one alone (a serve's, on each half: one alone rarely turns both falls
+                # into rises, and the one that does, added first, left no room for the other).
+                pairs = [(score([b, c]), (b, c)) for b, c in itertools.combinations(mids, 2)
+                         if np.sum((times > b) & (times < c)) >= 3]
+                if pairs and min(pairs)[0] < min(best, current) / 1.5:
+                    best, added = min(pairs)
+            if not best < current / 1.5:
+                break
+            bounces, current = sorted(bounces + list(added)), best
+        return bounces, current
+
+    # Pruned, added, pruned, until that changes nothing (at most a few rounds): a cusp read
+    # at a sample next to the bounce, pruned, leaves room for the bounce between the
+    # samples (a drive's, its start 5 m off without it), and one that no path rebounds at
+    # goes before any bounce is added beside it.
+    bounces, current = prune(list(bounces), score(list(bounces)))
+    for _ in range(3):
+        before = bounces
+        bounces, current = prune(*add(bounces, current))
+        if bounces == before:
             break
-        best, b = min(trial)
-        if not best < current / 1.5:
-            break
-        bounces, current = sorted(bounces + [b]), best
-    # A bounce stays only if it earns its place as an added one must (lowering the misfit
-    # by a third), the cusps' included: a cusp read off noisy pixels is no bounce, and a
-    # bounce added beside it can be the real one.
-    while bounces:
-        best, k = min((score(bounces[:k] + bounces[k + 1:]), k) for k in range(len(bounces)))
-        if not best < 1.5 * current:
-            break
-        bounces, current = bounces[:k] + bounces[k + 1:], best
     if bounces:
         chosen = _on_surfaces(rays, tuple(bounces), surfaces)[4] or None
         for k in range(len(bounces)):
@@ -447,7 +495,13 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
                 lo = max(lo, bounces[k - 1])
             if k + 1 < len(bounces):
                 hi = min(hi, bounces[k + 1])
-            bounces[k] = _golden(lambda b, k=k: score(bounces[:k] + [b] + bounces[k + 1:], chosen), lo, hi)
+            def at(b, k=k):
+                return score(bounces[:k] + [b] + bounces[k + 1:], chosen)
+
+            # (Kept where it scores no worse: where no path rebounds, the misfit is infinite,
+            # and a search that meets such a stretch can end there.)
+            refined = _golden(at, lo, hi)
+            bounces[k] = refined if at(refined) <= at(bounces[k]) else bounces[k]
     return tuple(bounces)
 
 
@@ -479,6 +533,18 @@ def _viable(bounces: tuple[float, ...], t: np.ndarray) -> tuple[float, ...]:
         k = int(short[0])
         bounces.pop(min(k, len(bounces) - 1))
     return tuple(bounces)
+
+
+def air_weights(velocity) -> np.ndarray:
+    """The inverse of the prior's standard deviations of a flight's air acceleration, a
+    3 x 3 matrix, for the flight's ``velocity`` at its middle (m/s): ``1 / AIR_PRIOR``
+    along it, ``1 / (AIR_PRIOR max(1, speed / AIR_SPEED))`` across it; ``1 / AIR_PRIOR``
+    where the velocity is not known (``None``)."""
+    if velocity is None:
+        return np.eye(3) / AIR_PRIOR
+    speed = float(np.linalg.norm(velocity))
+    along = np.outer(velocity, velocity) / max(speed, 1e-12) ** 2
+    return along / AIR_PRIOR + (np.eye(3) - along) / (AIR_PRIOR * max(1.0, speed / AIR_SPEED))
 
 
 def noise_of(rays: _Rays) -> float:
@@ -552,14 +618,13 @@ def _solve(rays: _Rays, bounces, flight, keep, depth, heights, air, previous):
         noise = noise_of(rays)
         ends = np.concatenate([bounces, [rays.t.max()]])
         for f in range(len(refs)):
-            weight = noise / AIR_PRIOR * np.sqrt(np.sum(flight[rows] == f))
-            a = np.zeros((3, n))
-            a[:, m * f + 6:m * f + 9] = np.eye(3) * weight
-            blocks.append(a)
-            mean = np.zeros(3)
+            mean, middle = np.zeros(3), None
             if previous is not None and previous.size == n:
-                u = previous.reshape(len(refs), 3, 3)[f]
-                span = ends[f] - refs[f]
-                mean = rays.drag(u[1] + 0.5 * (rays.g + u[2]) * span)  # the drag at mid-flight
-            values.append(mean * weight)
+                middle = rays.velocity_at(previous.reshape(len(refs), 3, 3)[f], 0.5 * (ends[f] - refs[f]))
+                mean = rays.drag(middle)  # the drag at mid-flight
+            weight = noise * np.sqrt(np.sum(flight[rows] == f)) * air_weights(middle)
+            a = np.zeros((3, n))
+            a[:, m * f + 6:m * f + 9] = weight
+            blocks.append(a)
+            values.append(weight @ mean)
     return np.linalg.lstsq(np.concatenate(blocks), np.concatenate(values), rcond=None)[0]
