@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from conftest import ROOT
 
 import estim
+from estim.fitting import _registry as registry
+from estim.fitting._fit import attach_effects, explain_misfit
 from estim.fitting._missing_physics import (
     EXPLAINS,
     SPREAD,
@@ -243,3 +246,25 @@ def test_the_effects_of_a_shot_in_air():
     lag = G * t_span**2 / 2 - math.log(math.cosh(t_span * math.sqrt(G * k))) / k
     assert entry["effect"] == "quadratic drag"
     assert entry["max_deviation_mm"] == pytest.approx(lag * 1e3, rel=1e-6)
+
+
+@pytest.mark.parametrize("release", [(0.0, 0.0, -0.03), (0.0, 0.0, 0.25)])
+def test_a_fit_released_inside_a_solid_is_said_so_not_simulated(drop, release):
+    """A fit above its noise floor is explained by simulating the fitted ball; one whose
+    release lies inside the table (a fit of one camera's pixels can run there: nothing in
+    the fit's program keeps it out) made that simulation refuse it, and the shot was left
+    without an answer. Its report now says where the release lies instead, and has no
+    effects (``attach_effects`` refused it too); a release above the table is explained
+    as before."""
+    ball = drop.ball("pingpong")
+    values = {**registry.defaults(ball), **dict(zip(("x0", "y0", "z0"), release, strict=True))}
+    report = SimpleNamespace(values=values, at_noise_floor=False, rms_m=3e-3, noise_m=1e-3, notes=[],
+                             missing_physics=[], ball="pingpong", model_position=np.zeros((3, 3)), effects=None)
+    problem = SimpleNamespace(mask=np.ones((3, 3), bool), t=np.array([0.0, 0.25, 0.5]), radius=ball.radius,
+                              mass=ball.mass, inertia=ball.inertia, cameras=None)
+    explain_misfit(drop, report, problem, ("e",))
+    attach_effects(drop, report, problem)
+    inside = release[2] < ball.radius
+    assert any("lies inside 'table'" in n for n in report.notes) is inside
+    # (Above the table: the air the drop scene lacks, over half a second of a ping-pong ball.)
+    assert (report.missing_physics == []) is inside and report.effects is not None

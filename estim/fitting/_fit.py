@@ -54,7 +54,7 @@ from .._config import (
     require_x64,
 )
 from ..forward import _ode
-from ..forward._balls import check_outside
+from ..forward._balls import check_outside, solids_at_release
 from ..forward._contact import has_edges
 from ..forward._dispatch import ODE, closed_form_plan, path
 from ..forward._ode import OdeSettings
@@ -686,10 +686,19 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Seque
     """For a fit above its noise floor (``estim.fitting._missing_physics``): in a scene without
     air, how far the air the scene leaves out would move this ball over this track; in a scene
     with air, how far the air coefficients the fit held (not in ``free``) would, a quarter
-    off. In ``report.missing_physics`` and, where it could explain the misfit, as a note."""
+    off. In ``report.missing_physics`` and, where it could explain the misfit, as a note.
+    A fit released inside a solid gets a note saying so instead."""
+    params, span, noise = _fitted_ball(scene, report, problem)
+    solids = solids_at_release(scene, params)[0]
+    if solids:
+        # (Nothing in the fit's program keeps the release out of a solid; a simulation
+        # refuses it, and so the diagnostics below cannot run.)
+        report.notes.append(f"the fitted release point {[round(report.values[n], 4) for n in ('x0', 'y0', 'z0')]} "
+                            f"lies inside {solids[0]!r}: this path is no physical one; the data do not fix the "
+                            "release (too few rows before the first bounce?)")
+        return
     if report.at_noise_floor or not math.isfinite(report.rms_m):
         return
-    params, span, noise = _fitted_ball(scene, report, problem)
     if not span > 0:
         return
     if scene.air is None:
@@ -708,7 +717,8 @@ def attach_effects(scene: Scene, report: BallFit, problem: _Problem) -> None:
     track, in noise levels (``estim.fitting._missing_physics.model_effects``; ``[]`` where
     the track gives no span or noise to measure them by)."""
     params, span, noise = _fitted_ball(scene, report, problem)
-    report.effects = model_effects(scene, params, span, noise) if span > 0 and math.isfinite(noise) and noise > 0 else []
+    ok = span > 0 and math.isfinite(noise) and noise > 0 and not solids_at_release(scene, params)[0]
+    report.effects = model_effects(scene, params, span, noise) if ok else []
 
 
 def _fitted_ball(scene: Scene, report: BallFit, problem: _Problem):

@@ -51,7 +51,7 @@ from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
 from ..tracks._camera import CameraArrays
 from ..tracks._image import ImageTracks
-from ..tracks._reconstruct import reconstructions
+from ..tracks._reconstruct import NARROW, reconstructions
 from . import _registry as registry
 from ._fit import FitResult, ImageRows, _fit_all, attach_effects
 from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
@@ -106,6 +106,12 @@ DOUBT = 3.0
 # explains the frames no better than one that met the net on its way (the other shot
 # above, whose two starts' fits ended at 3.3 per coordinate and 3 m off).
 MISFIT = 1.0
+# ... as is a fit whose path lies farther than this from the start read off the pixels, on
+# average (m): the start's bounce on the scene's surface holds its depth, and a fit that
+# leaves it by metres has run along the rays (a drive seen from in front: from a start 1.6
+# m off at its release, 5 cm at its bounce, both fits ran to a path under the table
+# bouncing on the floor, 2.6 m off, at a loss above the truth's).
+DRIFT = 1.0
 DEEPER = ((1.25, 0.8), (1.25**2, 0.8**2))
 # A start's first flight may touch its bounce's surface this long before the bounce (s),
 # whose time is read off the pixels (``_flies_through``).
@@ -180,8 +186,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     for stage, factors in enumerate(DEEPER, 1):
         # First where any start's fit is doubted (the others may have run off as well, to
         # paths the priors cannot tell), then where the best one still is.
-        doubted = [b for b in tracks.balls if any(map(_doubted, _of(fits, b))) if stage == 1
-                   or _doubted(min(_of(fits, b), key=lambda f: f[1]))]
+        doubted = [b for b in tracks.balls if any(_doubted(f, recs_of[b][0]) for f in _of(fits, b)) if stage == 1
+                   or _doubted(min(_of(fits, b), key=lambda f: f[1]), recs_of[b][0])]
         moved = {b: [r for r in (recs_of[b][0].released_at(f, tracks.cameras[0].centre) for f in factors)
                      if not _released_inside(r, scene, b, t0_of[b])] for b in doubted}
         moved = {b: recs for b, recs in moved.items() if recs}
@@ -199,6 +205,10 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         bf.ball = b
         bf.depth = _depth_report(bf, tracks.cameras[0])
         bf.depth["alternative"] = _alternative(bf, chosen[b][1], [f[:2] for f in _of(fits, b) if f[0] is not bf])
+        if not np.isfinite(chosen[b][1]):
+            bf.notes.append("no start led to a path the cameras could have seen (every fit was released inside a "
+                            "solid, passes behind a camera, hides behind a surface from it, or left its residuals not finite): "
+                            "this path is the least bad; add a camera, or check the cameras' poses and the scene")
         for note in (bf.depth["note"], (bf.depth["alternative"] or {}).get("note", "")):
             if note:
                 bf.notes.append(note)
@@ -230,17 +240,26 @@ def _fit_starts(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, g
     fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
     every, units = _fit_all(scene, data, free=free, fixed=fixed, balls=ball_of, images=images, explore=True,
                             graduated=GRADUATED, **options)
-    return {k: (bf, _loss(bf), units.problems[units.names.index(k)], ball_of[k]) for k, bf in every.balls.items()}
+    # A fit released inside a solid, or whose path the cameras could not have seen, is no
+    # path (its loss infinite: doubted, and kept only where every start's fit is one).
+    impossible = {k: _in_solid(scene, ball_of[k], bf.values) or _hidden(scene, ball_of[k], tracks, bf)
+                  for k, bf in every.balls.items()}
+    return {k: (bf, np.inf if impossible[k] else _loss(bf), units.problems[units.names.index(k)], ball_of[k])
+            for k, bf in every.balls.items()}
 
 
 def _choose(fits: list[tuple], start) -> tuple:
-    """The fit to keep of a ball's ``(fit, loss, ...)``: of those within ``AMBIGUOUS`` of the
-    least loss (paths the pixels cannot tell apart), the one nearest the start read from the
-    pixels through the physics (``start``, a ``Reconstruction``: its bounces on the scene's
-    surfaces fix a depth that a moved start's fit may leave for a path under the table or
-    beyond it, bouncing on the floor, at a loss as low)."""
+    """The fit to keep of a ball's ``(fit, loss, ...)``: of those not doubted (``_doubted``;
+    all of them where every one is), of those within ``AMBIGUOUS`` of the least loss (paths
+    the pixels cannot tell apart), the one nearest the start read from the pixels through
+    the physics (``start``, a ``Reconstruction``: its bounces on the scene's surfaces fix a
+    depth that a moved start's fit may leave for a path under the table or beyond it,
+    bouncing on the floor, at a loss as low or lower: a drive seen from in front, whose
+    first start's fit lay 5 cm from the truth, ended 2.5 m off, under the table, from a
+    moved start at a loss 3 below it)."""
+    fits = [f for f in fits if not _doubted(f, start)] or fits
     least = min(f[1] for f in fits)
-    near = [f for f in fits if f[1] - least < AMBIGUOUS]
+    near = [f for f in fits if not f[1] - least >= AMBIGUOUS]  # (every fit where all losses are infinite)
     return min(near, key=lambda f: float(np.nanmean(np.linalg.norm(f[0].model_position - start.position, axis=1))))
 
 
@@ -249,13 +268,15 @@ def _of(fits: dict, ball: str) -> list[tuple]:
     return [f for f in fits.values() if f[3] == ball]
 
 
-def _doubted(fit: tuple) -> bool:
+def _doubted(fit: tuple, start) -> bool:
     """Whether a start's ``(fit, loss, ...)`` sits more than ``DOUBT`` standard deviations
-    from one of its priors, or misses its pixels by more than ``MISFIT`` of robust loss per
-    coordinate on average."""
+    from one of its priors, misses its pixels by more than ``MISFIT`` of robust loss per
+    coordinate on average, or lies farther than ``DRIFT`` from the ball's first start
+    (``start``, a ``Reconstruction``) on average."""
     bf, loss = fit[:2]
     return (any(abs(bf.values[n] - mean) > DOUBT * sd for n, (mean, sd) in bf.prior.items())
-            or not loss <= MISFIT * max(int(np.isfinite(bf.residuals).sum()), 1))
+            or not loss <= MISFIT * max(2 * bf.n_obs, 1)  # (u and v of each observed row)
+            or not np.nanmean(np.linalg.norm(bf.model_position - start.position, axis=1)) <= DRIFT)
 
 
 def start_values(rec, scene: Scene, ball: str, t0: float = 0.0) -> dict[str, float]:
@@ -355,7 +376,46 @@ def _released_inside(rec, scene: Scene, ball: str, t0: float = 0.0) -> bool:
     """Whether a start path's release point (:func:`start_values`) lies within the ball's
     radius of a solid, where a fit cannot start. (Near its bounces a start moved along the
     rays may run through the surface: the fit's physics takes it off.)"""
-    values = start_values(rec, scene, ball, t0)
+    return _in_solid(scene, ball, start_values(rec, scene, ball, t0))
+
+
+def _hidden(scene: Scene, ball: str, tracks: ImageTracks, bf) -> bool:
+    """Whether the fitted path lies where its cameras could not have seen it: behind a
+    row's camera (its centre less than a radius in front of the lens) at any row, or at
+    more than half of its rows hidden behind a box whose top a ball bounces on (the line
+    of sight from the row's camera to the ball's centre passes through it; at least
+    ``NARROW`` radii wide, as the start's bounce surfaces: a table, a step; not a net, which
+    a camera sees through; its outline shrunk by the ball's radius). A camera tracked the
+    ball there, so no such path is the ball's: a drive seen from in front had its fit run
+    to a path under the table, 2.6 m off, at a robust loss 2 below the truth's basin, and
+    another, from a start without its bounce, to a path that ends in the lens."""
+    radius = scene.ball(ball).radius
+    rows = np.flatnonzero(tracks.valid(ball))
+    position = np.asarray(bf.model_position)[:len(tracks.t[ball])][rows]
+    views = tracks.view[ball][rows]
+    if any(np.any(cam.depth(position[views == k]) < radius) for k, cam in enumerate(tracks.cameras)):
+        return True
+    centre, half = np.asarray(scene.box_centre), np.asarray(scene.box_half)
+    solid = 2 * np.minimum(half[:, 0], half[:, 1]) >= NARROW * radius
+    if not solid.any():
+        return False
+    eye = np.stack([c.centre for c in tracks.cameras])[views]
+    ray = position - eye
+    inset = np.array([radius, radius, 0.0])  # (a ball beside the outline, seen past its edge, shows)
+    lo = (centre[solid] - half[solid] + inset)[None] - eye[:, None]
+    hi = (centre[solid] + half[solid] - inset)[None] - eye[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):  # (slabs parallel to the ray)
+        a, b = lo / ray[:, None], hi / ray[:, None]
+    parallel = ray[:, None] == 0.0
+    enter = np.where(parallel, np.where((lo <= 0) & (hi >= 0), -np.inf, np.inf), np.minimum(a, b)).max(axis=2)
+    leave = np.where(parallel, np.where((lo <= 0) & (hi >= 0), np.inf, -np.inf), np.maximum(a, b)).min(axis=2)
+    hidden = ((enter < leave) & (leave > 0.0) & (enter < 1.0)).any(axis=1)
+    return bool(hidden.sum() > 0.5 * rows.size)
+
+
+def _in_solid(scene: Scene, ball: str, values: dict) -> bool:
+    """Whether the release point of ``values`` (``x0``, ``y0``, ``z0``) lies within the
+    ball's radius of a solid."""
     point = np.array([[values["x0"], values["y0"], values["z0"]]])
     in_box, in_plane = inside(np, scene, point, np.array([scene.ball(ball).radius]))
     return bool(in_box.any() or in_plane.any())

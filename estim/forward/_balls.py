@@ -148,25 +148,33 @@ def stays_outside(scene: Scene, radius, decisions, segments, n_segments):
     return ~jnp.any(used & into)
 
 
+def solids_at_release(scene: Scene, params: Params) -> list[tuple[str, ...]]:
+    """The names of the solids each ball of ``params`` (concrete values) starts in: closer
+    to them than its contact radius (radius - compression); one tuple per ball, flattened
+    over the batch."""
+    batch = params.batch_shape
+    p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
+    # (In NumPy: inside a user's jit even concrete fields' JAX arithmetic is traced.)
+    r = np.broadcast_to(np.asarray(params.radius) - np.asarray(params.compression), batch).reshape(-1)
+    inside_box, inside_plane = inside(np, scene, p, r)
+    return [tuple(scene.names[j] for j in np.flatnonzero(inside_box[i]))
+            + tuple(scene.names[scene.n_boxes + j] for j in np.flatnonzero(inside_plane[i])) for i in range(len(p))]
+
+
 def check_outside(scene: Scene, params: Params, names=None) -> None:
     """A ball must not start inside a solid (checked here when the values are concrete;
     inside a user's jit by ``_input_code``). ``names``: the balls' names, for the message."""
     leaves = (params.position, params.radius, params.compression, scene.box_centre)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return
-    batch = params.batch_shape
-    p = np.broadcast_to(np.asarray(params.position), batch + (3,)).reshape(-1, 3)
-    # (In NumPy: inside a user's jit even concrete fields' JAX arithmetic is traced.)
-    r = np.broadcast_to(np.asarray(params.radius) - np.asarray(params.compression), batch).reshape(-1)
-    inside_box, inside_plane = inside(np, scene, p, r)
-    bad = np.flatnonzero(inside_box.any(axis=1) | inside_plane.any(axis=1))
-    if bad.size:
-        i = int(bad[0])
-        hit = [scene.names[j] for j in np.flatnonzero(inside_box[i])]
-        hit += [scene.names[scene.n_boxes + j] for j in np.flatnonzero(inside_plane[i])]
-        who = f"ball {i}" if names is None else f"ball {names[i]!r}"
-        raise ValueError(
-            f"{who} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
-            f"than its contact radius {r[i]} (radius - compression) to the solid (release it outside "
-            "every solid)"
-        )
+    for i, hit in enumerate(solids_at_release(scene, params)):
+        if hit:
+            p = np.broadcast_to(np.asarray(params.position), params.batch_shape + (3,)).reshape(-1, 3)
+            r = np.broadcast_to(np.asarray(params.radius) - np.asarray(params.compression),
+                                params.batch_shape).reshape(-1)
+            who = f"ball {i}" if names is None else f"ball {names[i]!r}"
+            raise ValueError(
+                f"{who} starts inside {hit[0]!r}: its centre {p[i].tolist()} is closer "
+                f"than its contact radius {r[i]} (radius - compression) to the solid (release it outside "
+                "every solid)"
+            )
