@@ -1,11 +1,12 @@
 """One camera, four views: synthetic table-tennis shots fitted from their pixels.
 
 Run from the repository root: ``python docs/scripts/camera_views.py [--shots N] [--json F]
-[--engine mujoco]``. Shots of estim's own 3-D physics (drag, Magnus, the friction law's
-bounce; spin drawn per shot), or with ``--engine mujoco`` of MuJoCo's (:func:`mujoco_shot`:
-its fluid model and soft frictional contact, the drag coefficient and restitution drawn
-per shot; the independent engine, whose mismatch with estim's model stands in for a real
-ball's), 25 fps, seen by one camera at a time (from the side, at an angle from a corner,
+[--engine mujoco [--kind drive|serve|lob|chop]]``. Shots of a rally (:func:`draw_shot`)
+in estim's own 3-D physics (drag, Magnus, the friction law's bounce; spin drawn per
+shot), or with ``--engine mujoco`` in MuJoCo's (:func:`mujoco_shot`: its fluid model and
+soft frictional contact, the drag coefficient and restitution drawn per shot; the
+independent engine, whose mismatch with estim's model stands in for a real ball's), or
+with ``--kind`` drives, serves, lobs and chops in MuJoCo's (:data:`KINDS`), 25 fps, seen by one camera at a time (from the side, at an angle from a corner,
 far behind the end the ball leaves, and far behind the end it comes at: "front"), 2 px
 of Gaussian noise on every pixel (``--noise``). Each is fitted with
 ``estim.fit_image`` and its defaults (what ``estim fit TRACK.csv --camera CAM.yaml --scene
@@ -137,6 +138,59 @@ def draw_mujoco_shot(rng, t) -> tuple[dict, np.ndarray]:
             return truth, p[np.round(np.asarray(t) / 0.001).astype(int)]
 
 
+# Other kinds of shot (``--kind``, MuJoCo's physics): ranges of the release position (m),
+# velocity (m/s) and spin (rad/s) per component; a serve bounces on the server's half
+# first. Their spins are a real ball's, flown by MuJoCo's Magnus force, which at these
+# spins is 1.5 to 2.5 times a real ball's (a constant lift coefficient): a harder test of
+# the bend the start and the fit must follow than real shots are.
+KINDS = {
+    "drive": {"position": ((-0.5, 0.5), (-2.2, -1.5), (0.1, 0.5)), "velocity": ((-1.0, 1.0), (9.0, 16.0), (-0.5, 1.5)),
+              "spin": ((-600.0, -200.0), (-50.0, 50.0), (-100.0, 100.0))},
+    "serve": {"position": ((-0.5, 0.5), (-1.6, -1.4), (0.15, 0.35)), "velocity": ((-0.5, 0.5), (3.0, 6.0), (-2.0, -0.5)),
+              "spin": ((50.0, 300.0), (-50.0, 50.0), (-200.0, 200.0))},
+    "lob": {"position": ((-0.6, 0.6), (-3.5, -2.5), (-0.2, 0.4)), "velocity": ((-0.8, 0.8), (3.5, 6.0), (3.0, 5.0)),
+            "spin": ((-400.0, -100.0), (-50.0, 50.0), (-100.0, 100.0))},
+    "chop": {"position": ((-0.5, 0.5), (-2.8, -1.8), (0.0, 0.4)), "velocity": ((-0.5, 0.5), (5.0, 9.0), (0.5, 2.0)),
+             "spin": ((150.0, 400.0), (-50.0, 50.0), (-80.0, 80.0))},
+}
+
+
+def draw_kind(rng, kind: str) -> tuple[dict, np.ndarray, np.ndarray]:
+    """A shot of ``kind`` (``KINDS``) flown by MuJoCo (:func:`mujoco_shot`, its drag
+    coefficient, friction and contact damping drawn as :func:`draw_mujoco_shot` draws them),
+    kept where its contact's restitution lies within 0.75-0.97, it clears the net by 0.2 m
+    (its centre's height over the net) and bounces on the far half (a serve on its own half
+    first, then on the far half; any other shot on the far half first); tracked at 25 fps
+    from its release until the opponent's hit, 0.1 to 0.3 s after that bounce (or until it
+    falls below the table's top). Returns the truth, the path and the frames' times."""
+    fine = np.arange(0.0, 1.5, 0.001)
+    spec = KINDS[kind]
+    while True:
+        truth = {k: np.array([rng.uniform(*r) for r in spec[k]]) for k in ("position", "velocity", "spin")}
+        truth.update(drag_coefficient=float(rng.uniform(0.4, 0.6)), damping=float(rng.uniform(0.035, 0.055)),
+                     mu=float(rng.uniform(0.2, 0.4)))
+        p, e = mujoco_shot(truth["position"], truth["velocity"], truth["spin"], fine,
+                           blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"], friction=truth["mu"])
+        if e is None or not 0.75 < e < 0.97:
+            continue
+        truth["e"] = e
+        y, z = p[:, 1], p[:, 2]
+        low = np.flatnonzero((z[1:-1] < z[:-2]) & (z[1:-1] <= z[2:]) & (np.abs(z[1:-1] - 0.02) < 3e-3)) + 1
+        far = [i for i in low if 0.0 < y[i] < 1.37]
+        cross = np.flatnonzero((y[:-1] < 0.0) & (y[1:] >= 0.0))
+        if not far or not cross.size or z[cross[0]] < 0.2:
+            continue
+        if (kind == "serve") != (len(low) >= 2 and -1.37 < y[low[0]] < 0.0 and low[1] == far[0]):
+            continue
+        if kind != "serve" and low[0] != far[0]:
+            continue
+        t_end = fine[far[0]] + rng.uniform(0.1, 0.3)
+        below = np.flatnonzero((fine > fine[far[0]]) & (z < 0.0))
+        t = np.arange(0.0, min(t_end, fine[below[0]]) if below.size else t_end, 1.0 / FPS)
+        if t.size >= 5:
+            return truth, p[np.round(t / 0.001).astype(int)], t
+
+
 # The fit's free parameters in the order of ``theta`` (``bound``): what ``fit_image``
 # estimates by default in the table-tennis scene.
 FREE = ("x0", "y0", "z0", "vx0", "vy0", "vz0", "spin_x", "spin_y", "spin_z", "e", "mu")
@@ -173,16 +227,22 @@ def across(spin, velocity):
     return np.asarray(spin) - np.dot(spin, v) * v
 
 
-def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, engine: str = "estim") -> list[dict]:
+def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, engine: str = "estim",
+        kind: str = "rally") -> list[dict]:
     scene = estim.load_scene(SCENE)
     rng = np.random.default_rng(seed)
     # The front view's noise from a stream of its own: the other views' shots and noise
     # stay those of the runs before it was added (docs/pages/cameras.md).
     front = np.random.default_rng([seed, 1])
-    t = np.arange(0.0, 0.6, 1.0 / FPS)
     rows = []
     for k in range(shots):
-        truth, path = draw_shot(rng, scene, t) if engine == "estim" else draw_mujoco_shot(rng, t)
+        t = np.arange(0.0, 0.6, 1.0 / FPS)
+        if kind != "rally":
+            truth, path, t = draw_kind(rng, kind)
+        elif engine == "estim":
+            truth, path = draw_shot(rng, scene, t)
+        else:
+            truth, path = draw_mujoco_shot(rng, t)
         for name in views:
             cam = VIEWS[name]
             # The same draws at every noise level: the shots' noise differs only in its size.
@@ -199,10 +259,10 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, 
             spin = np.array([bf.values.get(f"spin_{c}", 0.0) for c in "xyz"])
             want = across(truth["spin"], truth["velocity"])
             rows.append({
-                "shot": k, "view": name, "seconds": seconds,
+                "shot": k, "view": name, "kind": kind, "frames": int(t.size), "seconds": seconds,
                 "path_error_m": float(np.mean(np.linalg.norm(bf.model_position - path, axis=1))),
                 # (No bound for MuJoCo's shots: its pixels are not of estim's model.)
-                "bound_m": bound(scene, truth, t, cam, noise) if engine == "estim" else None,
+                "bound_m": bound(scene, truth, t, cam, noise) if engine == "estim" and kind == "rally" else None,
                 "e_error": abs(bf.values["e"] - truth["e"]), "e_signed": bf.values["e"] - truth["e"],
                 "spin_error": float(np.linalg.norm(across(spin, truth["velocity"]) - want) / np.linalg.norm(want)),
                 "rms_px": bf.rms_m, "converged": bf.converged, "at_noise_floor": bf.at_noise_floor,
@@ -248,8 +308,12 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="write every row to this file")
     parser.add_argument("--engine", default="estim", choices=("estim", "mujoco"),
                         help="whose physics flies the shots (mujoco: the independent engine)")
+    parser.add_argument("--kind", default="rally", choices=("rally", *KINDS),
+                        help="the shots: a rally's (the default), or another kind in MuJoCo's physics (KINDS)")
     args = parser.parse_args()
-    rows = run(args.shots, args.seed, tuple(args.views), args.noise, args.engine)
+    if args.kind != "rally" and args.engine != "mujoco":
+        parser.error("--kind other than rally flies its shots in MuJoCo: add --engine mujoco")
+    rows = run(args.shots, args.seed, tuple(args.views), args.noise, args.engine, args.kind)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)
