@@ -482,8 +482,10 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
     # goes before any bounce is added beside it.
     bounces, current = prune(list(bounces), score(list(bounces)))
     for _ in range(3):
-        before = bounces
-        bounces, current = prune(*add(bounces, current))
+        grown, current = add(bounces, current)
+        if grown == bounces:  # (nothing added: a pruned set stays as it is)
+            break
+        before, (bounces, current) = bounces, prune(grown, current)
         if bounces == before:
             break
     if bounces:
