@@ -281,6 +281,15 @@ def test_a_fit_of_positions_refuses_camera_offsets():
         estim.fit(scene, {"pingpong": (t, pos)}, free=("e", "dt_camera2"))
 
 
+def test_too_few_rows_are_refused_in_pixels():
+    """A track with fewer rows than a fit needs is refused naming its rows of pixels (the
+    3-D start's samples are not what the user gave)."""
+    scene = estim.load_scene("data/scenes/table_tennis.xml").with_air(None)
+    tracks = _tracks((SIDE,), T[:20:4], _shot(scene)[:20:4], 1.0, seed=4)
+    with pytest.raises(ValueError, match=r"'pingpong': only 5 rows with both pixels; a fit needs at least 8"):
+        fit_image(scene, tracks)
+
+
 @pytest.mark.parametrize("fy, distortion", [(1400.0, ()), (1330.0, (-0.3, 0.1, 0.002, -0.001, 0.0))],
                          ids=["pinhole", "distorted"])
 def test_the_replay_from_a_calibrated_camera_puts_the_ball_where_the_camera_sees_it(fy, distortion):

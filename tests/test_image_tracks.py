@@ -11,7 +11,7 @@ import estim
 from estim.tracks._camera import Camera
 from estim.tracks._csv import TracksError
 from estim.tracks._image import ImageTracks, read_image_tracks_csv
-from estim.tracks._reconstruct import reconstruct, surface_height
+from estim.tracks._reconstruct import _median, reconstruct, surface_height
 
 SIDE = Camera.look_at((3.0, -0.5, 1.0), (0.0, 0.0, 0.0), focal=1400.0, size=(1920, 1080), name="side")
 BEHIND = Camera.look_at((0.5, -4.0, 1.5), (0.0, 0.0, 0.0), focal=1400.0, size=(1920, 1080), name="behind")
@@ -192,6 +192,15 @@ def test_a_start_released_elsewhere_on_its_ray_is_re_aimed_at_its_bounce(table):
     assert np.allclose(moved.position[first], p + v * dt + 0.5 * a * dt**2, atol=1e-12)
     assert np.array_equal(moved.position[~first], rec.position[~first])
     assert np.array_equal(moved.flights[1:], rec.flights[1:]) and moved.bounces == rec.bounces
+
+
+@pytest.mark.parametrize("size", [1, 2, 7, 8, 25])
+def test_the_start_s_median_is_numpy_s_to_the_last_bit(size):
+    """The least squares' own median (``_median``, called every round) is ``np.median``,
+    bit for bit, on odd and even sizes, and NaN where the data hold one."""
+    x = np.random.default_rng(size).lognormal(0.0, 3.0, size)
+    assert _median(x) == np.median(x)
+    assert np.isnan(_median(np.append(x, np.nan)))
 
 
 def test_the_surface_beneath_a_point(table):

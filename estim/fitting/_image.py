@@ -46,14 +46,14 @@ from collections.abc import Callable
 import numpy as np
 
 from ..forward._balls import inside
-from ..model._air import air_acceleration_compiled, spin_for_lift
+from ..model._air import spin_for_lift, spinless_acceleration
 from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
 from ..tracks._camera import CameraArrays
 from ..tracks._image import ImageTracks
 from ..tracks._reconstruct import NARROW, reconstructions
 from . import _registry as registry
-from ._fit import FitResult, ImageRows, _fit_all, attach_effects
+from ._fit import MIN_SAMPLES, FitResult, ImageRows, _fit_all, attach_effects
 from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
 from ._loss import robust_loss
 
@@ -166,6 +166,9 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     recs_of, t0_of = {}, {}
     for b in tracks.balls:
         scene.ball(b)  # KeyError naming the scene's balls
+        n = int(np.sum(tracks.valid(b)))
+        if n < MIN_SAMPLES:
+            raise ValueError(f"ball {b!r}: only {n} rows with both pixels; a fit needs at least {MIN_SAMPLES}")
         t0 = t0_of[b] = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
         try:
             recs = reconstructions(tracks, b, scene, alternatives=STARTS)
@@ -301,7 +304,7 @@ def start_values(rec, scene: Scene, ball: str, t0: float = 0.0) -> dict[str, flo
         end = rec.bounces[0] if rec.bounces else float(rec.t.max())
         middle = 0.5 * (rec.refs[0] + end)
         v = rec.velocity(middle, 0)
-        drag = np.asarray(air_acceleration_compiled(scene.air, spec.radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
+        drag = spinless_acceleration(scene.air, spec.radius, spec.mass, DRAG_COEFFICIENT)(v)
         spin = spin_for_lift(scene.air, spec.radius, spec.mass, v, rec.flights[0, 2] - drag)
         out.update(zip(("spin_x", "spin_y", "spin_z"), map(float, np.clip(spin, -SPIN_START, SPIN_START)),
                        strict=True))

@@ -57,7 +57,7 @@ from jaxtyping import Array, Float
 
 from .._fold import inner
 
-__all__ = ["Air", "acceleration", "spin_for_lift", "step_bounds"]
+__all__ = ["Air", "acceleration", "spin_for_lift", "spinless_acceleration", "step_bounds"]
 
 
 class Air(eqx.Module):
@@ -135,6 +135,18 @@ def air_acceleration(air: Air, radius, mass, drag_coefficient, spin, velocity, l
 # each call dispatched its thirty-odd JAX operations one by one, and the first compiled each
 # of them (about 0.3 s of a camera fit's first call; 0.2 s of a compiled one's 0.46 s).
 air_acceleration_compiled = jax.jit(air_acceleration)
+
+
+def spinless_acceleration(air: Air, radius: float, mass: float, drag_coefficient: float):
+    """``v -> air_acceleration`` of a ball without spin, NumPy in and out (the starts'
+    drag at a flight's velocity). The constants go in as float64 arrays once: one compiled
+    signature for every caller, and no conversion at each of a start's thousand calls."""
+    constants = [jnp.asarray(c, dtype=jnp.float64) for c in (radius, mass, drag_coefficient, np.zeros(3))]
+
+    def acceleration(velocity) -> np.ndarray:
+        return np.asarray(air_acceleration_compiled(air, *constants, velocity))
+
+    return acceleration
 
 
 def acceleration(air: Air | None, gravity, radius, mass, drag_coefficient, spin, velocity, lift_factor=1.0):

@@ -47,12 +47,13 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-from ..model._air import air_acceleration_compiled
+from ..model._air import spinless_acceleration
 from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
 from ._flights import flight_contacts
@@ -219,8 +220,8 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
     added beside it, had led a fit to a path 2.6 m off). Where the rays then miss the path
     by more than twice the pixels' noise (a bounce seen head-on makes no clear cusp), the
     bounce that lowers the misfit most (tried at each sample and between each two, then
-    at its best time between the samples beside it) is added while it lowers the misfit
-    by a third or more; before any is in, two at once where they lower it by a third more
+    at its best time between the samples beside it, those already in on their surfaces)
+    is added while it lowers the misfit by a third or more; before any is in, two at once where they lower it by a third more
     than one (a serve's). Pruned and added again until that changes nothing. Each bounce
     time is then refined between its neighbouring samples (golden-section search on the
     misfit, kept where it scores no worse).
@@ -245,13 +246,8 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
         ValueError: too few rows to fix the path (six unknowns per flight).
     """
     radius = scene.ball(ball).radius if radius is None else float(radius)
-    drag = None
-    if scene.air is not None:
-        spec = scene.ball(ball)
-
-        def drag(v):
-            return np.asarray(air_acceleration_compiled(scene.air, radius, spec.mass, DRAG_COEFFICIENT, np.zeros(3), v))
-
+    drag = None if scene.air is None else spinless_acceleration(scene.air, radius, scene.ball(ball).mass,
+                                                                   DRAG_COEFFICIENT)
     rays = _Rays(tracks, ball, np.array([0.0, 0.0, -float(scene.gravity)]), drag)
     surfaces = _surfaces(scene, radius)
     if bounces is None:
@@ -303,11 +299,12 @@ def _on_surfaces(rays, bounces, surfaces, chosen=None, ranked: int = 0):
     (up to three bounces; beyond, one bounce at a time), the centre one radius above its
     surface at the bounce. The assignment whose bounce points lie on their surfaces, with
     the fewest on unbounded planes, and whose rays miss least wins (:meth:`_Rays.score`). Returns ``(x, keep, miss, depth,
-    surfaces chosen)``; with ``ranked``, a list of up to that many, best first."""
+    surfaces chosen)``; with ``ranked``, a list of up to that many, best first. ``chosen``
+    fixes a surface per bounce (``None``: any of them)."""
     if not bounces or not surfaces:
         return [(*rays.fit(bounces), ())] if ranked else (*rays.fit(bounces), ())
     if chosen is not None:
-        options = [[c] for c in chosen]
+        options = [surfaces if c is None else [c] for c in chosen]
     elif len(bounces) <= 3:
         options = [surfaces] * len(bounces)
     else:
@@ -388,7 +385,7 @@ class _Rays:
             v = pos - self.centres
             depth = np.maximum(np.linalg.norm(v, axis=1), 1e-3)
             miss = np.linalg.norm(v - np.sum(v * self.dirs, axis=1)[:, None] * self.dirs, axis=1) / depth
-            scale = 1.4826 * np.median(miss[keep]) + 1e-12
+            scale = 1.4826 * _median(miss[keep]) + 1e-12
             keep = miss <= _CUT * max(scale, self.noise if np.isfinite(self.noise) else 0.0)
         return x, keep, miss, depth
 
@@ -426,9 +423,11 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
     Each candidate set of bounces is scored with its bounces on the scene's surfaces
     (:func:`_on_surfaces`): a path that merely bends (drag, spin) is no bounce."""
 
+    on = {}  # the surfaces of each scored set's bounces
+
     def score(candidate, chosen=None):
         try:
-            x, _, miss, _, _ = _on_surfaces(rays, tuple(candidate), surfaces, chosen)
+            x, _, miss, _, on[tuple(candidate)] = _on_surfaces(rays, tuple(candidate), surfaces, chosen)
         except ValueError:
             return np.inf
         if not _rebounds(rays, x, tuple(candidate)):
@@ -452,17 +451,24 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
             bounces, current = bounces[:k] + bounces[k + 1:], best
         return bounces, current
 
+    def plus(bounces, b):
+        # The bounces already in keep their surfaces; only the added one's is chosen (half
+        # the least-squares paths of every surface for every bounce, the same bounces found).
+        held = dict(zip(bounces, on.get(tuple(bounces), ()), strict=False))
+        candidate = sorted(bounces + [b])
+        return score(candidate, [held.get(c) for c in candidate] if held else None)
+
     def add(bounces, current):
         while not current <= 2.0 * rays.noise:
-            trial = [(score(sorted(bounces + [b])), (b,)) for b in singles if b not in bounces]
+            trial = [(plus(bounces, b), (b,)) for b in singles if b not in bounces]
             best, added = min(trial) if trial else (np.inf, ())
             if np.isfinite(best):
                 # The best bounce at its best time between the samples beside it, the next
                 # one then tried against it: a serve's first bounce at the midpoint 20 ms
                 # off, or its second 10 ms off, lowered the misfit by less than a third.
                 lo, hi = times[times < added[0]][-1], times[times > added[0]][0]  # (the samples beside it)
-                refined = _golden(lambda b, bounces=bounces: score(sorted(bounces + [b])), lo, hi)
-                best, added = min((best, added), (score(sorted(bounces + [refined])), (refined,)))
+                refined = _golden(lambda b, bounces=bounces: plus(bounces, b), lo, hi)
+                best, added = min((best, added), (plus(bounces, refined), (refined,)))
             if not bounces:
                 # Two bounces at once, where they lower the misfit by a third more than the
                 # best one alone (a serve's, on each half: one alone rarely turns both falls
@@ -544,9 +550,19 @@ def air_weights(velocity) -> np.ndarray:
     where the velocity is not known (``None``)."""
     if velocity is None:
         return np.eye(3) / AIR_PRIOR
-    speed = float(np.linalg.norm(velocity))
+    speed = math.sqrt(velocity @ velocity)
     along = np.outer(velocity, velocity) / max(speed, 1e-12) ** 2
-    return along / AIR_PRIOR + (np.eye(3) - along) / (AIR_PRIOR * max(1.0, speed / AIR_SPEED))
+    across = AIR_PRIOR * max(1.0, speed / AIR_SPEED)
+    return along / AIR_PRIOR + (np.eye(3) - along) / across
+
+
+def _median(x) -> float:
+    """``np.median`` of a 1-D array, to the last bit, without its dispatch (called per
+    least-squares round); NaN where x holds one."""
+    s = np.sort(x)
+    if s.size == 0 or np.isnan(s[-1]):
+        return np.nan
+    return 0.5 * (s[(s.size - 1) // 2] + s[s.size // 2])
 
 
 def noise_of(rays: _Rays) -> float:
@@ -554,8 +570,10 @@ def noise_of(rays: _Rays) -> float:
     return rays.noise if np.isfinite(rays.noise) else 1e-3
 
 
-def _golden(f, lo, hi, iterations: int = 30) -> float:
-    """The minimum of ``f`` on ``[lo, hi]`` by golden-section search."""
+def _golden(f, lo, hi, iterations: int = 16) -> float:
+    """The minimum of ``f`` on ``[lo, hi]`` by golden-section search: ``iterations`` shrink
+    the bracket by 0.618 each, 16 to 5e-4 of it (20 us of a 40 ms frame: the fit refines
+    the bounce times; 30 steps found the same bounces, at twice the cost)."""
     r = (np.sqrt(5.0) - 1.0) / 2.0
     a, b = lo + (1 - r) * (hi - lo), lo + r * (hi - lo)
     fa, fb = f(a), f(b)
@@ -582,20 +600,21 @@ def _solve(rays: _Rays, bounces, flight, keep, depth, heights, air, previous):
     d = rays.dirs[rows]
     P = (np.eye(3)[None] - d[:, :, None] * d[:, None, :]) / depth[rows, None, None]
     dt = rays.t[rows] - refs[flight[rows]]
-    A = np.zeros((rows.size, 3, n))
-    for f in range(len(refs)):
-        at = flight[rows] == f
-        for j, power in enumerate((1.0, dt[at], 0.5 * dt[at] ** 2)[:m // 3]):
-            A[at, :, m * f + 3 * j:m * f + 3 * j + 3] = P[at] * np.reshape(power, (-1, 1, 1))
+    powers = np.stack([np.ones_like(dt), dt, 0.5 * dt**2][:m // 3], axis=1)
+    # Row i's block of its flight's unknowns (p, v, a): P_i, P_i dt_i, P_i dt_i^2 / 2.
+    A = np.zeros((rows.size, 3, len(refs), m // 3, 3))
+    A[np.arange(rows.size), :, flight[rows]] = P[:, :, None, :] * powers[:, None, :, None]
+    A = A.reshape(rows.size, 3, n)
     rhs = np.einsum("nij,nj->ni", P, rays.centres[rows] - 0.5 * rays.g * dt[:, None] ** 2)
     blocks, values = [A.reshape(-1, n)], [rhs.reshape(-1)]
-    tie = _TIE / np.median(depth[rows])
+    counts = np.bincount(flight[rows], minlength=len(refs))
+    tie = _TIE / _median(depth[rows])
+    eye = np.eye(3)
     for k, b in enumerate(bounces):
         dt = b - refs[k]
         a = np.zeros((3, n))
-        for j, power in enumerate((1.0, dt, 0.5 * dt**2)[:m // 3]):
-            a[:, m * k + 3 * j:m * k + 3 * j + 3] = -np.eye(3) * power * tie
-        a[:, m * (k + 1):m * (k + 1) + 3] = np.eye(3) * tie
+        a[:, m * k:m * (k + 1)] = np.concatenate([-eye * power * tie for power in (1.0, dt, 0.5 * dt**2)[:m // 3]], axis=1)
+        a[:, m * (k + 1):m * (k + 1) + 3] = eye * tie
         blocks.append(a)
         values.append(0.5 * rays.g * dt**2 * tie)
         if heights is not None and heights[k] is not None:
@@ -607,12 +626,12 @@ def _solve(rays: _Rays, bounces, flight, keep, depth, heights, air, previous):
             # a prior on that change keeps a short flight after the bounce from running
             # off along its rays, where its few pixels cannot hold it. Weighted like the
             # flight's rows together, as the air's prior below.
-            w = noise_of(rays) / BOUNCE_PRIOR * np.sqrt(np.sum(flight[rows] == k + 1))
+            w = noise_of(rays) / BOUNCE_PRIOR * np.sqrt(counts[k + 1])
             a = np.zeros((2, n))
-            a[:, m * (k + 1) + 3:m * (k + 1) + 5] = np.eye(2) * w
-            a[:, m * k + 3:m * k + 5] = -np.eye(2) * w
+            a[:, m * (k + 1) + 3:m * (k + 1) + 5] = eye[:2, :2] * w
+            a[:, m * k + 3:m * k + 5] = -eye[:2, :2] * w
             if m == 9:
-                a[:, m * k + 6:m * k + 8] = -np.eye(2) * w * dt
+                a[:, m * k + 6:m * k + 8] = -eye[:2, :2] * w * dt
             blocks.append(a)
             values.append(rays.g[:2] * dt * w)
     if m == 9:
@@ -624,7 +643,7 @@ def _solve(rays: _Rays, bounces, flight, keep, depth, heights, air, previous):
             if previous is not None and previous.size == n:
                 middle = rays.velocity_at(previous.reshape(len(refs), 3, 3)[f], 0.5 * (ends[f] - refs[f]))
                 mean = rays.drag(middle)  # the drag at mid-flight
-            weight = noise * np.sqrt(np.sum(flight[rows] == f)) * air_weights(middle)
+            weight = noise * np.sqrt(counts[f]) * air_weights(middle)
             a = np.zeros((3, n))
             a[:, m * f + 6:m * f + 9] = weight
             blocks.append(a)
