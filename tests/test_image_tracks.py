@@ -145,32 +145,36 @@ def test_a_fast_drive_bent_by_its_topspin_keeps_its_bounce():
         assert np.mean(np.linalg.norm(rec.position - path, axis=1)) < 0.1
 
 
-@pytest.mark.parametrize("view", ["side", "angle"])
-def test_a_track_picked_up_three_frames_before_its_bounce_keeps_the_bounce(view):
-    """A MuJoCo rally shot (``camera_views.draw_mujoco_shot``, seed 11, its first shot),
-    tracked only from its eighth frame: 8 frames, the bounce between the fourth and
-    fifth. The noise read off so few third differences holds the bounce's kink (4.3 px
-    for 2 px), one parabola without a bounce then missed the rays by less than twice
-    that, no bounce was tried, and the start lay 4.7 m (side) and 6.6-8.4 m (angle) off,
-    above the table. With no bounce in, one is now tried regardless: the start has the
-    bounce within a frame and lies within 10 cm of the truth."""
+@pytest.mark.parametrize(("shot", "view", "tolerance"), [(0, "side", 0.1), (0, "angle", 0.1), (1, "behind", 0.25)])
+def test_a_track_picked_up_three_frames_before_its_bounce_keeps_the_bounce(shot, view, tolerance):
+    """MuJoCo rally shots (``camera_views.draw_mujoco_shot``, seed 11, drawn and seen as
+    the camera study draws them), tracked only from their eighth frame: 8 frames, the
+    bounce between the fourth and fifth. The noise read off so few third differences
+    holds the bounce's kink (4.3 px for 2 px), one parabola without a bounce missed the
+    rays by less than twice that, no bounce was tried, and the start lay 4.7 m (side) and
+    6.6-8.4 m (angle) off, above the table: with no bounce in, one is now tried
+    regardless. From behind, no bounce at the samples or between them rebounds (each fit
+    ran off along its rays, 7.7-12.4 m off): the quarter frames are tried as well. The
+    start has the bounce within a frame and lies within 10 cm of the truth (25 cm from
+    behind, where its fit then comes to 2 cm)."""
     sys.path.insert(0, str(ROOT / "docs" / "scripts"))
     import camera_views
 
     rng = np.random.default_rng(11)
     t = np.arange(0.0, 0.6, 1 / camera_views.FPS)
-    _, path = camera_views.draw_mujoco_shot(rng, t)
-    for name in ("side", "angle"):
-        uv = np.asarray(camera_views.VIEWS[name].project(path)) + 2.0 * rng.normal(0.0, 1.0, (t.size, 2))
-        if name == view:
-            break
+    for k in range(shot + 1):
+        _, path = camera_views.draw_mujoco_shot(rng, t)
+        for name in ("side", "angle", "behind"):
+            uv = np.asarray(camera_views.VIEWS[name].project(path)) + 2.0 * rng.normal(0.0, 1.0, (t.size, 2))
+            if (k, name) == (shot, view):
+                break
     cam, later = camera_views.VIEWS[view], slice(7, None)
     tracks = ImageTracks("late", ("pingpong",), (cam,), {"pingpong": t[later] - t[7]}, {"pingpong": uv[later]},
                          {"pingpong": np.zeros(t.size - 7, np.int64)})
     rec = reconstruct(tracks, "pingpong", estim.load_scene(camera_views.SCENE))
-    z = path[later, 2]
-    assert np.argmin(z) in (3, 4) and len(rec.bounces) == 1 and 0.12 <= rec.bounces[0] <= 0.16, rec.bounces
-    assert np.mean(np.linalg.norm(rec.position - path[later], axis=1)) < 0.1
+    assert np.argmin(path[later, 2]) in (3, 4) and len(rec.bounces) == 1, rec.bounces
+    assert 0.12 <= rec.bounces[0] <= 0.16, rec.bounces
+    assert np.mean(np.linalg.norm(rec.position - path[later], axis=1)) < tolerance
 
 
 @pytest.mark.parametrize(("view", "position", "velocity", "spin", "t_end"), [

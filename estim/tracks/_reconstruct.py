@@ -439,6 +439,7 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
     # A bounce is tried between samples and at them: a drive's, seen from in front, fell on
     # a frame, and neither midpoint beside it rebounds.
     singles = np.union1d(mids, times[1:-1])
+    quarters = np.concatenate([0.75 * times[:-1] + 0.25 * times[1:], 0.25 * times[:-1] + 0.75 * times[1:]])
 
     def prune(bounces, current):
         # A bounce stays only if it earns its place as an added one must (lowering the
@@ -466,6 +467,13 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
         while not (fits := current <= 2.0 * rays.noise) or not bounces:
             trial = [(plus(bounces, b), (b,)) for b in singles if b not in bounces]
             best, added = min(trial) if trial else (np.inf, ())
+            if not bounces and not np.isfinite(best):
+                # None rebounds there: four rows a flight fit well only near the bounce's
+                # own time (a track picked up three frames before it, seen from behind:
+                # at the samples and midpoints beside the bounce each fit ran off along
+                # its rays), so the quarter frames are tried as well.
+                trial = [(plus(bounces, b), (b,)) for b in quarters]
+                best, added = min(trial) if trial else (np.inf, ())
             if np.isfinite(best):
                 # The best bounce at its best time between the samples beside it, the next
                 # one then tried against it: a serve's first bounce at the midpoint 20 ms
