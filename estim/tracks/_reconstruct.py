@@ -218,13 +218,15 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
     the one whose removal raises the misfit least goes while the misfit without it is less
     than 1.5 times the misfit with it (a cusp read off noisy pixels, with the real bounce
     added beside it, had led a fit to a path 2.6 m off). Where the rays then miss the path
-    by more than twice the pixels' noise (a bounce seen head-on makes no clear cusp), the
-    bounce that lowers the misfit most (tried at each sample and between each two, then
-    at its best time between the samples beside it, those already in on their surfaces)
-    is added while it lowers the misfit by a third or more; before any is in, two at once where they lower it by a third more
-    than one (a serve's). Pruned and added again until that changes nothing. Each bounce
-    time is then refined between its neighbouring samples (golden-section search on the
-    misfit, kept where it scores no worse).
+    by more than twice the pixels' noise (a bounce seen head-on makes no clear cusp), or
+    where no bounce is in at all, the bounce that lowers the misfit most (tried at each
+    sample and between each two, at the quarter frames where none of those rebounds and
+    none is in, then at its best time between the samples beside it, those already in on
+    their surfaces) is added while it lowers the misfit by a third or more; before any is
+    in, two at once where they lower it by a third more than one (a serve's, and only
+    where the misfit asks). Pruned and added again until that changes nothing. Each
+    bounce time is then refined between its neighbouring samples (golden-section search
+    on the misfit, kept where it scores no worse).
 
     Each bounce is put on each of the scene's upward surfaces in turn (:func:`_on_surfaces`);
     the paths whose bounce points lie on their surfaces come first, and among those the
