@@ -278,6 +278,35 @@ def test_a_quick_program_tiers_up_once_it_has_run_as_long_as_its_first_call(monk
     assert compiled == [None]
 
 
+def test_calls_in_same_programs_keep_their_program_and_the_move_waits(monkeypatch):
+    """``same_programs``: the ski-rental rule's move (timed: where the load puts it) waits
+    until the block ends, the calls inside neither counted nor timed, so that runs compared
+    with each other round alike; an optimised program stays optimised."""
+    compiled = []
+
+    def fake_filter_jit(fun, compiler_options=None):
+        def run(*args, **kwargs):
+            compiled.append(compiler_options)
+            return fun(*args, **kwargs)
+        return run
+
+    clock = iter([0.0, 1.0] + [t for k in range(1, 10) for t in (10.0 * k, 10.0 * k + 0.6)])
+    monkeypatch.setattr(eqx, "filter_jit", fake_filter_jit)
+    monkeypatch.setattr(_config.time, "perf_counter", lambda: next(clock))
+    quick, optimised = (("xla_backend_optimization_level", 0),), (("xla_backend_optimization_level", 1),)
+    program = _config.jit(lambda x, n: x * n, options=quick, optimised=optimised)
+    q, o = _config.compile_options(quick), _config.compile_options(optimised)
+    program(np.ones(2), 3)  # 1 s: the quick program's first call
+    with _config.same_programs():
+        for _ in range(4):  # untimed: would have moved after the second
+            program(np.ones(2), 3)
+    program(np.ones(2), 3)
+    program(np.ones(2), 3)  # 0.6 + 0.6 >= 1 s: moves after this one
+    with _config.same_programs():
+        program(np.ones(2), 3)
+    assert compiled == [q] * 7 + [o]
+
+
 def test_a_program_compiled_ahead_is_the_one_its_first_call_runs_and_its_compile_counts(monkeypatch):
     """``jit(...).ahead``: the quick program of a signature not seen yet, lowered from shapes
     alone, compiled on another thread; the call then neither traces nor compiles it again,

@@ -66,6 +66,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from .._config import same_programs
 from ..forward._effect_report import AIR_DENSITY, AIR_VISCOSITY
 from ..forward._simulate import simulate
 from ..forward._trajectory import IMPACT
@@ -354,14 +355,15 @@ def model_effects(
     def position(run):
         return np.asarray(simulate(*run, t_span, ts=ts).position)
 
-    fitted = position((scene, params))
     out = []
-    for effect, off, without, reference in runs:
-        deviation = float(np.max(np.linalg.norm(position(without) - (fitted if reference is None else position(reference)),
-                                                axis=-1)))
-        levels = deviation / noise_m
-        out.append({"effect": effect, "switched_off": off, "max_deviation_mm": deviation * 1e3,
-                    "noise_levels": levels, "verdict": _verdict(levels)})
+    with same_programs():  # (runs compared on one program each: an effect that does nothing is 0)
+        fitted = position((scene, params))
+        for effect, off, without, reference in runs:
+            deviation = float(np.max(np.linalg.norm(
+                position(without) - (fitted if reference is None else position(reference)), axis=-1)))
+            levels = deviation / noise_m
+            out.append({"effect": effect, "switched_off": off, "max_deviation_mm": deviation * 1e3,
+                        "noise_levels": levels, "verdict": _verdict(levels)})
     return out
 
 
