@@ -250,10 +250,10 @@ def _gradient_kernels(final_x, theta):
     return kernels
 
 
-def test_a_quick_program_tiers_up_once_it_has_run_as_long_as_its_first_call(monkeypatch):
-    """``jit(..., optimised=...)`` at top level: the quick options until the calls after
-    the first have taken as long as the first (the ski-rental rule), then the optimised
-    ones, per signature (shapes and static values); inside a transformation, neither."""
+def _timed_program(monkeypatch, seconds: float):
+    """``x * n`` under ``_config.jit``'s ski-rental rule on a fake clock (the first call 1 s,
+    each later one ``seconds``), its jit recording the compile options of each call.
+    Returns the program, that record, and the quick and optimised options."""
     compiled = []
 
     def fake_filter_jit(fun, compiler_options=None):
@@ -262,12 +262,19 @@ def test_a_quick_program_tiers_up_once_it_has_run_as_long_as_its_first_call(monk
             return fun(*args, **kwargs)
         return run
 
-    clock = iter([0.0, 1.0] + [t for k in range(1, 10) for t in (10.0 * k, 10.0 * k + 0.3)])
+    clock = iter([0.0, 1.0] + [t for k in range(1, 10) for t in (10.0 * k, 10.0 * k + seconds)])
     monkeypatch.setattr(eqx, "filter_jit", fake_filter_jit)
     monkeypatch.setattr(_config.time, "perf_counter", lambda: next(clock))
     quick, optimised = (("xla_backend_optimization_level", 0),), (("xla_backend_optimization_level", 1),)
     program = _config.jit(lambda x, n: x * n, options=quick, optimised=optimised)
-    q, o = _config.compile_options(quick), _config.compile_options(optimised)
+    return program, compiled, _config.compile_options(quick), _config.compile_options(optimised)
+
+
+def test_a_quick_program_tiers_up_once_it_has_run_as_long_as_its_first_call(monkeypatch):
+    """``jit(..., optimised=...)`` at top level: the quick options until the calls after
+    the first have taken as long as the first (the ski-rental rule), then the optimised
+    ones, per signature (shapes and static values); inside a transformation, neither."""
+    program, compiled, q, o = _timed_program(monkeypatch, 0.3)
     for _ in range(6):  # the first call 1 s, then 0.3 s each: 0.3 + 0.3 + 0.3 + 0.3 >= 1 after the fifth
         program(np.ones(2), 3)
     program(np.ones(3), 3)  # another shape: another program, quick again
@@ -282,20 +289,7 @@ def test_calls_in_same_programs_keep_their_program_and_the_move_waits(monkeypatc
     """``same_programs``: the ski-rental rule's move (timed: where the load puts it) waits
     until the block ends, the calls inside neither counted nor timed, so that runs compared
     with each other round alike; an optimised program stays optimised."""
-    compiled = []
-
-    def fake_filter_jit(fun, compiler_options=None):
-        def run(*args, **kwargs):
-            compiled.append(compiler_options)
-            return fun(*args, **kwargs)
-        return run
-
-    clock = iter([0.0, 1.0] + [t for k in range(1, 10) for t in (10.0 * k, 10.0 * k + 0.6)])
-    monkeypatch.setattr(eqx, "filter_jit", fake_filter_jit)
-    monkeypatch.setattr(_config.time, "perf_counter", lambda: next(clock))
-    quick, optimised = (("xla_backend_optimization_level", 0),), (("xla_backend_optimization_level", 1),)
-    program = _config.jit(lambda x, n: x * n, options=quick, optimised=optimised)
-    q, o = _config.compile_options(quick), _config.compile_options(optimised)
+    program, compiled, q, o = _timed_program(monkeypatch, 0.6)
     program(np.ones(2), 3)  # 1 s: the quick program's first call
     with _config.same_programs():
         for _ in range(4):  # untimed: would have moved after the second
