@@ -325,6 +325,24 @@ def test_robust_noise_reads_the_noise_of_a_piecewise_polynomial(order):
     assert robust_std(r) < 1.2 < 30 < np.std(r)
 
 
+def test_robust_noise_reads_across_missing_samples_with_their_times():
+    """Samples missing at random (30% of 20,000): given the times, every window is a
+    divided difference, 0 on a polynomial below the order at any spacing and of unit
+    variance per unit of white noise, so the estimate is sigma to 2%; evenly spaced times
+    change nothing (the stencil, to the bit); a window with two equal times is left out."""
+    rng = np.random.default_rng(7)
+    t = np.arange(20_000) * 0.01
+    kept = rng.random(t.size) > 0.3
+    for order in (2, 3):
+        poly = 1.0 + 3.0 * t + (-4.9 * t**2 if order == 3 else 0.0)
+        y = poly + rng.normal(0.0, 0.003, t.size)
+        assert robust_noise(y[kept], order=order, t=t[kept]) == pytest.approx(0.003, rel=0.02)
+        assert robust_noise(poly[kept][:300], order=order, t=t[kept][:300]) < 1e-9
+        assert robust_noise(y, order=order, t=t) == robust_noise(y, order=order)
+    doubled = np.sort(np.concatenate([t[:50], t[20:21]]))  # a time twice
+    assert np.isfinite(robust_noise(rng.normal(0.0, 1.0, doubled.size), order=3, t=doubled))
+
+
 def test_both_splitters_find_the_closed_form_bounces():
     """A noise-free drop (e = 0.8, 0.5 m, 240 frames/s, 6 bounces): the splitter that knows g
     (lines of w = z + g t^2/2) and the one that does not (parabolas between the maxima

@@ -15,7 +15,9 @@ deviation ``sqrt(C(2k, k)) sigma`` (sqrt 6 for k = 2, sqrt 20 for k = 3), so
     sigma = 1.4826 MAD(Delta^k y) / sqrt(C(2k, k)),
 
 robust to the breaks (bounces) and to outliers through the median absolute deviation
-(:func:`robust_std`, 1.4826 MAD: the standard deviation of Gaussian data). Known gravity
+(:func:`robust_std`, 1.4826 MAD: the standard deviation of Gaussian data). Where a sample
+is missing, the windows across the gap are divided differences scaled alike (the
+callers pass the times). Known gravity
 makes ``w = z + g t^2 / 2`` a line in flight (k = 2); unknown gravity leaves a parabola
 (k = 3).
 
@@ -78,17 +80,24 @@ def robust_std(r) -> float:
     return MAD_TO_STD * np.median(np.abs(r - np.median(r)))
 
 
-def robust_noise(y, *, order: int) -> float:
+def robust_noise(y, *, order: int, t=None) -> float:
     """Noise level of ``y`` from its ``order``-th differences (see the module docstring).
 
     ``sigma = robust_std(Delta^k y) / sqrt(C(2k, k))`` with ``k = order``: exact for white
     noise on a signal that is a polynomial of degree below ``order`` between rare breaks.
     The differences are the binomial stencil ``sum_j (-1)^j C(k, j) y[i + k - j]``,
-    accumulated from ``j = 0``. The samples should be evenly spaced (the signal's own
-    k-th differences vanish only then).
+    accumulated from ``j = 0``, for evenly spaced samples. With the sample times ``t``, a
+    window of ``k + 1`` samples whose steps differ (a frame missing, a lost detection)
+    gives instead its k-th divided difference over its standard deviation in units of
+    sigma: ``sum_j w_j y_j / sqrt(sum_j w_j^2)`` with ``w_j = 1 / prod_{m != j} (t_j -
+    t_m)``, which vanishes on any polynomial of degree below k at any spacing and on even
+    spacing is the stencil's over ``sqrt(C(2k, k))`` (Newton's divided differences; the
+    variance of a linear form of white noise). Without ``t`` the samples are taken as
+    evenly spaced: the stencil across a gap would read the signal's own curvature as
+    noise (three frames missing of 15 read 2 px of noise as 6 to 8 px).
 
-    Returns NaN when ``y`` has fewer than ``order + 3`` samples (a median of fewer than
-    three differences is no estimate).
+    Returns NaN when ``y`` has fewer than ``order + 3`` samples, or fewer than three
+    differences are finite (a median of fewer than three is no estimate).
     """
     y = np.asarray(y, dtype=np.float64)
     n = y.shape[0]
@@ -98,7 +107,28 @@ def robust_noise(y, *, order: int) -> float:
     for j in range(1, order + 1):
         c = math.comb(order, j) * y[order - j: n - j]
         d = d - c if j % 2 else d + c
-    return float(robust_std(d) / math.sqrt(math.comb(2 * order, order)))
+    scale = math.sqrt(math.comb(2 * order, order))
+    if t is None:
+        return float(robust_std(d) / scale)
+    steps = np.lib.stride_tricks.sliding_window_view(np.diff(np.asarray(t, dtype=np.float64)), order)
+    even = np.all(np.abs(steps - steps[:, :1]) <= 1e-9 * np.abs(steps[:, :1]), axis=1) & (steps[:, 0] > 0)
+    if even.all():
+        return float(robust_std(d) / scale)
+    d = np.where(even, d / scale, _divided(y, np.asarray(t, dtype=np.float64), order))
+    d = d[np.isfinite(d)]
+    return float(robust_std(d)) if d.size >= 3 else float("nan")
+
+
+def _divided(y, t, order: int) -> np.ndarray:
+    """Every window's ``order``-th divided difference of ``y`` at the times ``t`` over its
+    standard deviation per unit of white noise (:func:`robust_noise`); NaN where two
+    times of a window coincide."""
+    tw = np.lib.stride_tricks.sliding_window_view(t, order + 1)
+    gaps = tw[:, :, None] - tw[:, None, :]
+    gaps[:, np.arange(order + 1), np.arange(order + 1)] = 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = 1.0 / np.prod(gaps, axis=2)
+        return np.sum(w * np.lib.stride_tricks.sliding_window_view(y, order + 1), axis=1) / np.sqrt(np.sum(w * w, axis=1))
 
 
 # ---------------------------------------------------------------------------------------
@@ -162,7 +192,7 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
     ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(z)
     t, x, z = t[ok], x[ok], z[ok]
     w = z + 0.5 * g * t * t
-    sigma = robust_noise(w, order=2) if noise is None else noise
+    sigma = robust_noise(w, order=2, t=t) if noise is None else noise
     level = sigma if np.isfinite(sigma) else 0.002
     tol = max(6.0 * level, 1e-3)
     still = max(8.0 * level, 3e-3)  # a height range below this is no vertical motion
@@ -353,7 +383,7 @@ def fit_flights(t, b, *, min_points: int = 8, cut: float = 5.0,
     b = np.asarray(b, dtype=np.float64)
     # Below 8 samples (the fewest a flight is fitted on by default) there is no noise
     # level to read, and the thresholds fall to their floors.
-    noise = robust_noise(b, order=3) if b.size >= 8 else 0.0
+    noise = robust_noise(b, order=3, t=t) if b.size >= 8 else 0.0
     bounces = _bounces(b, noise)
     edges = [None] + bounces + [None]
     flights = []

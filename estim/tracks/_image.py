@@ -80,7 +80,7 @@ class ImageTracks:
         for k in range(len(self.cameras)):
             at = self.valid(ball) & (self.view[ball] == k)
             if np.sum(at) >= 8:
-                u, v = (robust_noise(self.uv[ball][at, i], order=3) for i in (0, 1))
+                u, v = (robust_noise(self.uv[ball][at, i], order=3, t=self.t[ball][at]) for i in (0, 1))
                 levels.append(float(np.sqrt((u * u + v * v) / 2.0)))
         return float(np.median(levels)) if levels else float("nan")
 
