@@ -230,6 +230,21 @@ def test_start_in_the_plane_of_travel(velocity):
     assert s.noise == pytest.approx(1e-3, rel=0.15)
 
 
+@pytest.mark.parametrize("curved", [False, True])
+def test_start_reads_the_noise_across_lost_rows(curved):
+    """The throw with a fifth of its rows lost (NaN, at random): the start reads the noise
+    it reads from every row, 1 mm to 15% (the differences across a lost row are divided
+    differences, estim.tracks._flights.robust_noise), and the same bounces."""
+    t, obs = _throw((0.54, 0.72, 0.0))
+    lost = obs.copy()
+    lost[np.random.default_rng(4).random(t.size) < 0.2] = np.nan
+    whole = release_start(t, obs, (0.0, 0.0, -G), curved=curved)
+    s = release_start(t, lost, (0.0, 0.0, -G), curved=curved)
+    assert whole.noise == pytest.approx(1e-3, rel=0.15)
+    assert s.noise == pytest.approx(1e-3, rel=0.15)
+    assert len(s.bounces) == len(whole.bounces) == 2
+
+
 def test_start_follows_the_gravity_vector():
     """The same throw in a frame turned by a rotation R (data R p, gravity R g): the starts
     turn with it (positions and velocities R times the upright ones, e and mu_t the same),

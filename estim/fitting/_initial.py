@@ -214,7 +214,8 @@ def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT
         release, speed = _release_at(t, pos, release_time, edges[1], release, speed)
         if jumps:
             e = float(np.clip(np.median([j[0] for j in jumps]), *E_RANGE))
-        levels = [robust_noise(pos[ok, k], order=3, t=t[ok]) for k in range(3) if (ok := np.isfinite(pos[:, k])).any()]
+        finite = np.isfinite(pos)
+        levels = [robust_noise(pos[finite[:, k], k], order=3, t=t[finite[:, k]]) for k in range(3)]
         levels = [s for s in levels if np.isfinite(s)]
         noise = float(np.sqrt(np.mean(np.square(levels)))) if levels else noise
     return dataclasses.replace(
