@@ -49,7 +49,8 @@ def test_the_noise_of_a_track_with_frames_missing_is_that_of_the_whole_track():
     lost in each of 400 draws: the noise read from the frames left is, at the median, near
     the noise read from all 15 (the third differences across a gap are divided differences,
     estim.tracks._flights.robust_noise); over a gap the stencil of even frames read the
-    flight's curvature, 3 to 4 times the noise."""
+    flight's curvature (2.7 and 3.7 times the noise at the median in the camera
+    study's shots, docs/pages/cameras.md)."""
     t = np.arange(15) / 25.0
     points, _ = _vacuum_shot(t)
     rng = np.random.default_rng(3)

@@ -108,15 +108,15 @@ def robust_noise(y, *, order: int, t=None) -> float:
         c = math.comb(order, j) * y[order - j: n - j]
         d = d - c if j % 2 else d + c
     scale = math.sqrt(math.comb(2 * order, order))
-    if t is None:
-        return float(robust_std(d) / scale)
-    steps = np.lib.stride_tricks.sliding_window_view(np.diff(np.asarray(t, dtype=np.float64)), order)
-    even = np.all(np.abs(steps - steps[:, :1]) <= 1e-9 * np.abs(steps[:, :1]), axis=1) & (steps[:, 0] > 0)
-    if even.all():
-        return float(robust_std(d) / scale)
-    d = np.where(even, d / scale, _divided(y, np.asarray(t, dtype=np.float64), order))
-    d = d[np.isfinite(d)]
-    return float(robust_std(d)) if d.size >= 3 else float("nan")
+    if t is not None:
+        t = np.asarray(t, dtype=np.float64)
+        steps = np.lib.stride_tricks.sliding_window_view(np.diff(t), order)
+        even = np.all(np.abs(steps - steps[:, :1]) <= 1e-9 * np.abs(steps[:, :1]), axis=1) & (steps[:, 0] > 0)
+        if not even.all():
+            d = np.where(even, d / scale, _divided(y, t, order))
+            d = d[np.isfinite(d)]
+            return float(robust_std(d)) if d.size >= 3 else float("nan")
+    return float(robust_std(d) / scale)
 
 
 def _divided(y, t, order: int) -> np.ndarray:
