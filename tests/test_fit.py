@@ -26,7 +26,7 @@ from estim.fitting import _fit
 from estim.fitting import _registry as registry
 from estim.fitting._fit import PARAMETERS, _plan_at, _Problem, _residuals
 from estim.fitting._loss import ROBUST_LOSSES, robust_curvature, robust_loss, robust_weight
-from estim.forward._trajectory import REST
+from estim.forward._trajectory import IMPACT, REST
 
 ROOT = Path(__file__).resolve().parents[1]
 STAIRS = ROOT / "data" / "scenes" / "stairs.xml"
@@ -341,7 +341,10 @@ def test_fit_3d_throw_along_y():
     bf = result.balls["pingpong"]
     assert set(bf.names) == {"e", "mu_t", "x0", "y0", "z0", "vx0", "vy0"}
     assert bf.converged and bf.at_noise_floor, bf.notes
-    assert bf.n_bounces == 2
+    # The surfaces it bounced on, in order: those of the truth's own simulation.
+    events = estim.simulate(scene, params, 1.2).events
+    kinds, faces = np.asarray(events.kind)[:int(events.count)], np.asarray(events.face)[:int(events.count)]
+    assert bf.n_bounces == 2 and bf.contacts == tuple(scene.face_label(int(f)) for f in faces[kinds == IMPACT])
     assert bf.initial.vy0 == pytest.approx(truth["vy0"], abs=0.01)  # the start, along y
     for k, v in truth.items():
         s = bf.stderr[k]

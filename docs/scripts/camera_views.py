@@ -7,7 +7,9 @@ shot), or with ``--engine mujoco`` in MuJoCo's (:func:`mujoco_shot`: its fluid m
 soft frictional contact, the drag coefficient and restitution drawn per shot; the
 independent engine, whose mismatch with estim's model stands in for a real ball's), or
 with ``--kind`` drives, serves, lobs and chops in MuJoCo's (:data:`KINDS`), 25 fps, seen by one camera at a time (from the side, at an angle from a corner,
-far behind the end the ball leaves, and far behind the end it comes at: "front"), 2 px
+far behind the end the ball leaves, far behind the end it comes at: "front", and as
+television films a rally: 10 m behind the end the ball leaves, 3.5 m up, through a long
+lens: "broadcast"), 2 px
 of Gaussian noise on every pixel (``--noise``). Each is fitted with
 ``estim.fit_image`` and its defaults (what ``estim fit TRACK.csv --camera CAM.yaml --scene
 data/scenes/table_tennis.xml`` runs), and compared with the truth: the mean 3-D distance of
@@ -45,7 +47,13 @@ VIEWS = {
     "behind": Camera.look_at((0.0, -5.5, 1.6), (0.0, 0.0, 0.1), focal=FOCAL, size=SIZE, name="behind"),
     # Behind the other end: the ball comes at the camera (a rally's other half).
     "front": Camera.look_at((0.0, 5.5, 1.6), (0.0, 0.0, 0.1), focal=FOCAL, size=SIZE, name="front"),
+    # As television films a rally: far behind the end the ball leaves and high, through a
+    # long lens (perspective weaker, depth harder to read than from 5.5 m).
+    "broadcast": Camera.look_at((0.0, -10.0, 3.5), (0.0, 0.0, 0.1), focal=2 * FOCAL, size=SIZE, name="broadcast"),
 }
+# Views added after the first runs draw their noise from streams of their own, so that the
+# other views' shots and noise stay those of the runs before them (docs/pages/cameras.md).
+OWN_STREAM = {"front": 1, "broadcast": 2}
 
 
 def draw_shot(rng, scene, t) -> tuple[dict, np.ndarray]:
@@ -231,9 +239,7 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, 
         kind: str = "rally") -> list[dict]:
     scene = estim.load_scene(SCENE)
     rng = np.random.default_rng(seed)
-    # The front view's noise from a stream of its own: the other views' shots and noise
-    # stay those of the runs before it was added (docs/pages/cameras.md).
-    front = np.random.default_rng([seed, 1])
+    own = {name: np.random.default_rng([seed, k]) for name, k in OWN_STREAM.items()}
     rows = []
     for k in range(shots):
         t = np.arange(0.0, 0.6, 1.0 / FPS)
@@ -246,7 +252,7 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, 
         for name in views:
             cam = VIEWS[name]
             # The same draws at every noise level: the shots' noise differs only in its size.
-            uv = np.asarray(cam.project(path)) + noise * (front if name == "front" else rng).normal(0.0, 1.0, (t.size, 2))
+            uv = np.asarray(cam.project(path)) + noise * own.get(name, rng).normal(0.0, 1.0, (t.size, 2))
             tracks = ImageTracks(f"shot {k}", ("pingpong",), (cam,), {"pingpong": t}, {"pingpong": uv},
                                  {"pingpong": np.zeros(t.size, np.int64)})
             start = time.perf_counter()

@@ -100,6 +100,9 @@ PRIOR_DECIDES = 0.8
 # itself over SETTLED of them (``_settled``).
 SETTLED = 10
 SETTLED_TOL = 1e-9
+# Contact events a fit's simulation lists (the report's impacts and their surfaces): a
+# track's bounces are far fewer.
+LISTED_EVENTS = 64
 
 
 class _Problem(eqx.Module):
@@ -195,19 +198,21 @@ def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
     with air. Derivatives replay the first ``n_used`` slots (the batch's largest count)."""
     params, ts, t_end = _model(scene, phi, problem)
     if path(scene) == ODE:
-        parts = ode_finish(scene, params, t_end, ts, _ode_settings(), 64, pl, n_used, frozenset({"samples", "events"}))
+        parts = ode_finish(scene, params, t_end, ts, _ode_settings(), LISTED_EVENTS, pl, n_used,
+                           frozenset({"samples", "events"}))
         return parts["position"], parts["events"], ts
     segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, n_used)
     law = law_of(scene)
     pos, _ = sample(segs, pl.decisions, law, law.coefficients(params), scene.gravity, ts, has_edges(scene))
-    # The events only count impacts (a report, not differentiated): listed from the plan's
+    # The events only report the impacts (not differentiated): listed from the plan's
     # values, they stay out of the Jacobian's forward-mode trace.
     c = jax.lax.stop_gradient(law.coefficients(params))
-    return pos, list_events(pl.segments, pl.decisions, law, c, scene.gravity, 64), ts
+    return pos, list_events(pl.segments, pl.decisions, law, c, scene.gravity, LISTED_EVENTS), ts
 
 
 def _residuals(scene, phi, problem, pl, n_used):
-    """Masked residuals (flattened), which entries are valid, model positions, impacts."""
+    """Masked residuals (flattened), which entries are valid, model positions, and the
+    faces of the impacts within the data (``LISTED_EVENTS`` slots in time order, -1 past them)."""
     pos, events, ts = _simulate_at(scene, phi, problem, pl, n_used)
     valid = problem.mask & (_clock(phi, problem) >= registry.value(phi, "t0"))[:, None]
     if problem.cameras is None:
@@ -221,7 +226,7 @@ def _residuals(scene, phi, problem, pl, n_used):
         uv = problem.cameras.project(pos, problem.view)
         seen = jnp.concatenate([uv, jnp.zeros_like(uv[:, :1])], axis=1)
     r = jnp.where(valid, seen - problem.obs, 0.0).reshape(-1)
-    impacts = jnp.sum((events.kind == IMPACT) & (events.t <= jnp.max(ts))).astype(jnp.int32)
+    impacts = jnp.where((events.kind == IMPACT) & (events.t <= jnp.max(ts)), events.face, -1).astype(jnp.int32)
     return r, (valid.reshape(-1), pos, impacts)
 
 
@@ -301,6 +306,7 @@ class BallFit:
     depth: dict | None = None  # image tracks: how well the pixels fix the path's depth (estim.fitting._image)
     prior: dict[str, tuple[float, float]] = field(default_factory=dict)  # the priors applied: (mean, sd)
     effects: list[dict] | None = None  # what each effect of the model does over the track (fit(effects=True))
+    contacts: tuple[tuple[str, str], ...] = ()  # each impact's (solid, face) within the data, in time order
 
     def to_json(self) -> dict:
         """The values by their registry names (those that act in the fit's scene), the
@@ -319,6 +325,7 @@ class BallFit:
             n_obs=self.n_obs,
             n_outliers=self.n_outliers,
             n_bounces=self.n_bounces,
+            contacts=[list(c) for c in self.contacts],
             converged=self.converged,
             at_noise_floor=self.at_noise_floor,
             notes=self.notes,
@@ -971,7 +978,8 @@ def _run(scene, free, loss, steps, max_segments, theta, batch, mesh=None):
     n_theta = theta.shape[1]
 
     def one(theta, pr):
-        best = (jnp.zeros(m), jnp.zeros((m, n_theta)), (jnp.zeros(m, bool), jnp.zeros(pr.obs.shape), jnp.int32(0)))
+        best = (jnp.zeros(m), jnp.zeros((m, n_theta)),
+                (jnp.zeros(m, bool), jnp.zeros(pr.obs.shape), jnp.full(LISTED_EVENTS, -1, jnp.int32)))
 
         def going(loop):
             k, _, history = loop
@@ -1086,7 +1094,7 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
         if math.isfinite(stderr[n]) and stderr[n] > PRIOR_DECIDES * sd:
             notes.append(f"{n} is held by its prior {mean:g} +- {sd:g} more than by the data (standard error "
                          f"{stderr[n]:.3g}): the data say little about it")
-    n_imp = int(impacts)
+    contacts = tuple(scene.face_label(int(f)) for f in impacts[impacts >= 0])
     unit = "m" if problem.cameras is None else "px"
     improvement = np.abs(np.diff(history[-4:])) if len(history) >= 4 else np.array([np.inf])
     converged = bool(np.all(np.isfinite(history[-1:])) and np.all(improvement <= 1e-6 * max(abs(history[-1]), 1.0))
@@ -1111,7 +1119,8 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
         noise_m=noise,
         n_obs=n_obs,
         n_outliers=int((valid_np & ~keep).reshape(-1, 3).any(axis=1).sum()),
-        n_bounces=n_imp,
+        n_bounces=len(contacts),
+        contacts=contacts,
         converged=converged,
         at_noise_floor=at_floor,
         notes=notes,

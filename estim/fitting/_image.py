@@ -163,7 +163,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         raise ValueError(f"{len(tracks.cameras)} cameras: an image fit takes at most {registry.MAX_CAMERAS}")
     say = progress or (lambda msg: None)
     given = fixed or {}
-    recs_of, t0_of = {}, {}
+    recs_of, t0_of, surfaces_of = {}, {}, {}
     for b in tracks.balls:
         scene.ball(b)  # KeyError naming the scene's balls
         n = int(np.sum(tracks.valid(b)))
@@ -174,6 +174,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
             recs = reconstructions(tracks, b, scene, alternatives=STARTS)
         except ValueError as err:
             raise ValueError(f"ball {b!r}: {err}") from None
+        surfaces_of[b] = _bounced_on(scene, b, recs)  # (before a start is moved off its surface)
         recs = [_released_outside(_inside_out(rec, scene, b, tracks), scene, b, tracks, t0) for rec in recs]
         if len(recs) < STARTS:
             farther = recs[0].scaled(FARTHER, tracks.cameras[0].centre)
@@ -185,7 +186,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     free = registry.expand(default_image_free(scene, len(tracks.cameras)) if free is None else free)
     options = dict(free=free, loss=loss, steps=steps, restarts=restarts, max_segments=max_segments,
                    progress=progress, prior=prior)
-    fits = _fit_starts(scene, tracks, recs_of, t0_of, given, 0, **options)
+    fits = _fit_starts(scene, tracks, recs_of, t0_of, surfaces_of, given, 0, **options)
     for stage, factors in enumerate(DEEPER, 1):
         # First where any start's fit is doubted (the others may have run off as well, to
         # paths the priors cannot tell), then where the best one still is.
@@ -196,10 +197,11 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         moved = {b: recs for b, recs in moved.items() if recs}
         if not moved:
             break
-        say(f"{', '.join(moved)}: a fit doubted (a prior more than {DOUBT:g} sd off, or a robust loss above "
-            f"{MISFIT:g} per pixel coordinate); starts moved by {' and '.join(f'{f:.2f}' for f in factors)} "
+        say(f"{', '.join(moved)}: a fit doubted (a prior more than {DOUBT:g} sd off, a robust loss above "
+            f"{MISFIT:g} per pixel coordinate, a path {DRIFT:g} m from the start, or no path the cameras could "
+            f"have seen); starts moved by {' and '.join(f'{f:.2f}' for f in factors)} "
             "along the rays")
-        fits.update(_fit_starts(scene, tracks, moved, t0_of, given, stage * STARTS, **options))
+        fits.update(_fit_starts(scene, tracks, moved, t0_of, surfaces_of, given, stage * STARTS, **options))
     chosen = {b: _choose(_of(fits, b), recs_of[b][0]) for b in tracks.balls}
     result = FitResult({b: fit[0] for b, fit in chosen.items()})
     for b, bf in result.balls.items():
@@ -210,7 +212,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         bf.depth["alternative"] = _alternative(bf, chosen[b][1], [f[:2] for f in _of(fits, b) if f[0] is not bf])
         if not np.isfinite(chosen[b][1]):
             bf.notes.append("no start led to a path the cameras could have seen (every fit was released inside a "
-                            "solid, passes behind a camera, hides behind a surface from it, or left its residuals not finite): "
+                            "solid, passes behind a camera, hides behind a surface from it, rebounds off a solid where "
+                            "the pixels show no bounce, or left its residuals not finite): "
                             "this path is the least bad; add a camera, or check the cameras' poses and the scene")
         for note in (bf.depth["note"], (bf.depth["alternative"] or {}).get("note", "")):
             if note:
@@ -219,8 +222,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     return result
 
 
-def _fit_starts(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, given: dict, first: int,
-                free, **options) -> dict[str, tuple]:
+def _fit_starts(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, surfaces_of: dict, given: dict,
+                first: int, free, **options) -> dict[str, tuple]:
     """Fit each ball from its start paths ``recs_of[ball]`` side by side (``_fit_all``),
     always ``STARTS`` of them per ball (the last repeated where there are fewer: every shot
     of a given length then runs the same compiled program), under the keys ``_key(ball,
@@ -243,9 +246,14 @@ def _fit_starts(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, g
     fixed = {k: {**{n: v for n, v in starts[k].items() if n in free}, **given.get(ball_of[k], {})} for k in data}
     every, units = _fit_all(scene, data, free=free, fixed=fixed, balls=ball_of, images=images, explore=True,
                             graduated=GRADUATED, **options)
-    # A fit released inside a solid, or whose path the cameras could not have seen, is no
-    # path (its loss infinite: doubted, and kept only where every start's fit is one).
+    # A fit released inside a solid, whose path the cameras could not have seen, or that
+    # rebounds off a solid on which no start bounces (``_bounced_on``: the starts put the
+    # bounces where the pixels' cusps meet the scene's surfaces; a ball that comes back off
+    # the net, seen from far behind, looks much like one that flies on after its bounce, and
+    # a real net stops a ball) is no path (its loss infinite: doubted, and kept only where
+    # every start's fit is one).
     impossible = {k: _in_solid(scene, ball_of[k], bf.values) or _hidden(scene, ball_of[k], tracks, bf)
+                  or any(solid not in surfaces_of[ball_of[k]] for solid, _ in bf.contacts)
                   for k, bf in every.balls.items()}
     return {k: (bf, np.inf if impossible[k] else _loss(bf), units.problems[units.names.index(k)], ball_of[k])
             for k, bf in every.balls.items()}
@@ -280,6 +288,15 @@ def _doubted(fit: tuple, start) -> bool:
     return (any(abs(bf.values[n] - mean) > DOUBT * sd for n, (mean, sd) in bf.prior.items())
             or not loss <= MISFIT * max(2 * bf.n_obs, 1)  # (u and v of each observed row)
             or not np.nanmean(np.linalg.norm(bf.model_position - start.position, axis=1)) <= DRIFT)
+
+
+def _bounced_on(scene: Scene, ball: str, recs) -> frozenset[str]:
+    """The names of the solids that the bounces of the start paths ``recs`` touch (their
+    bounce points within half a radius of the surface, as :func:`_flies_through` reads them)."""
+    points = np.concatenate([rec.bounce_points.reshape(-1, 3) for rec in recs])
+    box, plane = inside(np, scene, points, np.full(len(points), 1.5 * scene.ball(ball).radius))
+    touched = np.concatenate([box, plane], axis=1).any(axis=0)
+    return frozenset(name for name, hit in zip(scene.names, touched, strict=True) if hit)
 
 
 def start_values(rec, scene: Scene, ball: str, t0: float = 0.0) -> dict[str, float]:

@@ -81,6 +81,7 @@ from .._config import require_x64
 from ..model._scene import Scene
 from . import _registry as registry
 from ._fit import (
+    LISTED_EVENTS,
     PARAMETERS,
     SETTLED,
     FitResult,
@@ -447,7 +448,8 @@ def fit_clips(
         m = batch.obs[0].size
         best = jax.tree.map(lambda x: place(x, mesh), (
             np.zeros((padded, m)), np.zeros((padded, m, len(free))),
-            (np.zeros((padded, m), bool), np.zeros(batch.obs.shape), np.zeros(padded, np.int32))))
+            (np.zeros((padded, m), bool), np.zeros(batch.obs.shape),
+             np.full((padded, LISTED_EVENTS), -1, np.int32))))
         histories = []
         chunk = 5
         for done in range(0, joint_steps, chunk):
