@@ -386,10 +386,15 @@ class _Rays:
             pos = self.at(x, bounces, self.t, flight)
             v = pos - self.centres
             depth = np.maximum(np.linalg.norm(v, axis=1), 1e-3)
-            miss = np.linalg.norm(v - np.sum(v * self.dirs, axis=1)[:, None] * self.dirs, axis=1) / depth
+            along = np.sum(v * self.dirs, axis=1)
+            miss = np.linalg.norm(v - along[:, None] * self.dirs, axis=1) / depth
             scale = 1.4826 * _median(miss[keep]) + 1e-12
             keep = miss <= _CUT * max(scale, self.noise if np.isfinite(self.noise) else 0.0)
-        return x, keep, miss, depth
+        # The sine of the angle between each ray and its point, growing on past 1 for a point
+        # behind the camera (2 - sine: 2 straight behind), as the path is scored: a ray is a
+        # half-line, and a path through the rays' backward extensions (a drive seen from far
+        # behind, read as one flight that passes behind the lens) is no path.
+        return x, keep, np.where(along >= 0.0, miss, 2.0 - miss), depth
 
     def score(self, miss, x=None, bounces=()) -> float:
         """The misfit of a path: the mean square of the rays' misses, the worst ``OUTLIERS``
