@@ -10,7 +10,7 @@ from conftest import ROOT
 import estim
 from estim.tracks._camera import Camera
 from estim.tracks._csv import TracksError
-from estim.tracks._image import ImageTracks, read_image_tracks_csv
+from estim.tracks._image import MIN_ROWS, ImageTracks, read_image_tracks_csv
 from estim.tracks._reconstruct import _median, reconstruct, surface_height
 
 SIDE = Camera.look_at((3.0, -0.5, 1.0), (0.0, 0.0, 0.0), focal=1400.0, size=(1920, 1080), name="side")
@@ -296,6 +296,19 @@ def test_reads_an_image_track_csv(tmp_path):
     assert tracks.uv["pingpong"][0].tolist() == [10.5, 20.25]
     assert tracks.n_obs("pingpong", 0) == 9 and tracks.n_obs("pingpong", 1) == 1  # a lost u is kept, masked
     assert np.isnan(tracks.uv["pingpong"][3, 0])
+
+
+def test_an_image_track_of_six_rows_is_read_and_five_are_refused(tmp_path):
+    """Six rows are what a fit from one camera needs (12 coordinates, 11 parameters): the
+    reader asks the same, by default, as the fit (``MIN_ROWS``)."""
+    path = tmp_path / "short.csv"
+    for n in (6, 5):
+        path.write_text("t,ball,u,v\n" + "".join(f"{k / 25},pingpong,{100 + k},{200 + k}\n" for k in range(n)))
+        if n == MIN_ROWS:
+            assert read_image_tracks_csv(path, (SIDE,)).n_obs("pingpong") == 6
+        else:
+            with pytest.raises(TracksError, match="only 5 rows with both u and v; at least min_samples = 6"):
+                read_image_tracks_csv(path, (SIDE,))
 
 
 @pytest.mark.parametrize(("text", "message"), [

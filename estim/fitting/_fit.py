@@ -66,7 +66,8 @@ from ..forward.laws import law_of
 from ..model._params import Params
 from ..model._scene import Scene
 from ..tracks._camera import CameraArrays
-from ..tracks._csv import check_units
+from ..tracks._csv import MIN_SAMPLES, check_units
+from ..tracks._image import MIN_ROWS
 from . import _registry as registry
 from ._initial import MU_DEFAULT, MU_RANGE, Initial, release_start, spin_start
 from ._levenberg_marquardt import levenberg_marquardt
@@ -88,7 +89,6 @@ __all__ = ["BallFit", "FitResult", "fit", "PARAMETERS"]
 PARAMETERS = registry.NAMES
 # The default under the seed's factor law (``registry.default_free`` gives every scene's).
 DEFAULT_FREE = registry.FACTOR_FREE
-MIN_SAMPLES = 8  # samples with x and z that a ball needs (as read_tracks_csv by default)
 # Restarts of a batch of more than 2 SUBSET_MIN keys run only the keys that restart (padded
 # to a power of two, at least this many), when they are at most half of the batch.
 SUBSET_MIN = 8
@@ -499,7 +499,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     if bad:
         raise ValueError(f"unknown parameter(s) {bad}; a fit can estimate {PARAMETERS}")
     ball_of = {b: (balls or {}).get(b, b) for b in data} if isinstance(data, dict) else {}
-    _check_inputs(scene, data, fixed or {}, ball_of)
+    _check_inputs(scene, data, fixed or {}, ball_of, MIN_ROWS if images else MIN_SAMPLES)
     say = progress or (lambda msg: None)
     names = list(data)
     lateral = any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)
@@ -777,7 +777,7 @@ def _check_release_time(data, fixed) -> None:
             )
 
 
-def _check_inputs(scene, data, fixed, ball_of=None) -> None:
+def _check_inputs(scene, data, fixed, ball_of=None, min_samples: int = MIN_SAMPLES) -> None:
     """Reject data and fixed values that fit cannot use, naming the ball and the problem:
     nothing is dropped, clipped, reordered or rescaled silently. NaN in a position is a lost
     detection (masked); anything else must be finite."""
@@ -822,9 +822,9 @@ def _check_inputs(scene, data, fixed, ball_of=None) -> None:
             raise ValueError(f"ball {b!r}: position[{i}] {'xyz'[k]} = {float(pos[i, k])!r} is infinite "
                              "(a lost detection is NaN)")
         n = int(np.sum(np.all(np.isfinite(pos[:, [0, 2]]), axis=1)))
-        if n < MIN_SAMPLES:
+        if n < min_samples:
             raise ValueError(f"ball {b!r}: only {n} samples with x and z; a fit needs at least "
-                             f"{MIN_SAMPLES}")
+                             f"{min_samples}")
         check_units(t, pos[:, 2], g, where=f"ball {b!r}")
     if not isinstance(fixed, dict):
         raise TypeError(f"fixed must be a dict ball -> {{parameter: value}}, got {type(fixed).__name__}")

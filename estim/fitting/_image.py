@@ -50,10 +50,10 @@ from ..model._air import spin_for_lift, spinless_acceleration
 from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
 from ..tracks._camera import CameraArrays
-from ..tracks._image import ImageTracks
+from ..tracks._image import MIN_ROWS, ImageTracks
 from ..tracks._reconstruct import NARROW, reconstructions
 from . import _registry as registry
-from ._fit import MIN_SAMPLES, FitResult, ImageRows, _fit_all, attach_effects
+from ._fit import FitResult, ImageRows, _fit_all, attach_effects
 from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
 from ._loss import robust_loss
 
@@ -167,8 +167,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     for b in tracks.balls:
         scene.ball(b)  # KeyError naming the scene's balls
         n = int(np.sum(tracks.valid(b)))
-        if n < MIN_SAMPLES:
-            raise ValueError(f"ball {b!r}: only {n} rows with both pixels; a fit needs at least {MIN_SAMPLES}")
+        if n < MIN_ROWS:
+            raise ValueError(f"ball {b!r}: only {n} rows with both pixels; a fit needs at least {MIN_ROWS}")
         t0 = t0_of[b] = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
         try:
             recs = reconstructions(tracks, b, scene, alternatives=STARTS)

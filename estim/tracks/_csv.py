@@ -42,6 +42,8 @@ REQUIRED_COLUMNS = ("t", "ball", "x", "z")
 OPTIONAL_COLUMNS = ("y",)
 # Beyond these a value cannot be metres / seconds of a tabletop experiment.
 MAX_ABS_POSITION = 100.0
+# Valid samples a ball of a track in metres needs (the fit, estim.fit, asks the same).
+MIN_SAMPLES = 8
 MAX_ABS_TIME = 1.0e4
 DEFAULT_UNITS = {"t": "s", "position": "m"}
 
@@ -162,7 +164,7 @@ def _parse_number(text: str, column: str, path, line: int, *, allow_missing: boo
 
 
 def read_tracks_csv(path: str | os.PathLike, *, scene: Scene | None = None,
-                    min_samples: int = 8) -> Tracks:
+                    min_samples: int = MIN_SAMPLES) -> Tracks:
     """Read tracked positions from a CSV file (see the module docstring).
 
     Args:

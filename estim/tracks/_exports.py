@@ -104,8 +104,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._camera import Camera
-from ._csv import MAX_ABS_POSITION, MAX_ABS_TIME, Tracks, TracksError, _where
-from ._image import MAX_ABS_PIXEL, ImageTracks
+from ._csv import MAX_ABS_POSITION, MAX_ABS_TIME, MIN_SAMPLES, Tracks, TracksError, _where
+from ._image import MAX_ABS_PIXEL, MIN_ROWS, ImageTracks
 
 __all__ = ["read_tracker", "read_kinovea"]
 
@@ -149,7 +149,7 @@ class _Table:
 
 def read_tracker(path: str | os.PathLike, *, units: str, ball: str | Mapping[str, str | None] | None = None,
                  camera: Camera | None = None, origin: Sequence[float] | None = None, y_up: bool | None = None,
-                 angle_deg: float | None = None, min_samples: int = 8) -> Tracks | ImageTracks:
+                 angle_deg: float | None = None, min_samples: int | None = None) -> Tracks | ImageTracks:
     """Read a Tracker "Export Data" text file (module docstring).
 
     Args:
@@ -166,7 +166,8 @@ def read_tracker(path: str | os.PathLike, *, units: str, ball: str | Mapping[str
         y_up: whether the export's y grows upward in the image (``"px"`` only, required;
             True for Tracker's axes).
         angle_deg: the angle of Tracker's axes (``"px"`` only; default 0, Tracker's).
-        min_samples: each track kept needs at least this many rows with both x and y.
+        min_samples: each track kept needs at least this many rows with both x and y (default:
+            what the fit of such a track needs, ``MIN_SAMPLES`` in metres, ``MIN_ROWS`` in pixels).
 
     Raises:
         FileNotFoundError: no such file.
@@ -182,7 +183,7 @@ def read_tracker(path: str | os.PathLike, *, units: str, ball: str | Mapping[str
 def read_kinovea(path: str | os.PathLike, *, units: str, ball: str | Mapping[str, str | None] | None = None,
                  time_unit: str | None = None, camera: Camera | None = None, origin: Sequence[float] | None = None,
                  y_up: bool | None = None, angle_deg: float | None = None,
-                 min_samples: int = 8) -> Tracks | ImageTracks:
+                 min_samples: int | None = None) -> Tracks | ImageTracks:
     """Read a Kinovea trajectory export, CSV or Gnuplot text (module docstring).
 
     Args:
@@ -194,7 +195,8 @@ def read_kinovea(path: str | os.PathLike, *, units: str, ball: str | Mapping[str
             was made; required unless the time column's header states it.
         camera, origin, y_up, angle_deg: as :func:`read_tracker` (``y_up=True`` for
             Kinovea's world space, False for its image space).
-        min_samples: each trajectory kept needs at least this many rows with both x and y.
+        min_samples: each trajectory kept needs at least this many rows with both x and y
+            (default as :func:`read_tracker`).
 
     Raises:
         FileNotFoundError: no such file.
@@ -661,6 +663,8 @@ def _finish(path: str, table: _Table, time_scale: float, units: str, ball, camer
     chosen = _select(path, table.tracks, ball)
     mark = _decimal_mark(path, table, [raw for raw, _ in chosen])
     tracks = [_convert(path, raw, name, mark, time_scale) for raw, name in chosen]
+    if min_samples is None:
+        min_samples = MIN_SAMPLES if units == "m" else MIN_ROWS
     for track in tracks:
         _check_samples(path, track, min_samples)
     balls = tuple(t.name for t in tracks)

@@ -33,6 +33,12 @@ REQUIRED_COLUMNS = ("t", "ball", "u", "v")
 OPTIONAL_COLUMNS = ("camera",)
 # Beyond this a value cannot be a pixel of a camera image.
 MAX_ABS_PIXEL = 1.0e5
+# Rows with both pixels a ball of an image track needs (the fit, estim.fit_image, asks the
+# same): 12 coordinates for the 11 parameters of a fit from one camera (release position,
+# velocity and spin, e, the friction coefficient; two of them also held by the scene's
+# priors). A shot hit hard is short at 25 fps: 6 or 7 frames from hit to hit, its bounce
+# among them (docs/pages/cameras.md, "Short tracks"). Fewer rows than parameters fix no path.
+MIN_ROWS = 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,7 +123,7 @@ def _camera_indices(labels: list[tuple[str, int]], cameras: tuple[Camera, ...], 
     return out
 
 
-def read_image_tracks_csv(path: str | os.PathLike, cameras, *, balls=None, min_samples: int = 8) -> ImageTracks:
+def read_image_tracks_csv(path: str | os.PathLike, cameras, *, balls=None, min_samples: int = MIN_ROWS) -> ImageTracks:
     """Read an image-track CSV (module docstring) seen by ``cameras``.
 
     Args:
