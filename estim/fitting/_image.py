@@ -140,7 +140,11 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         scene: the scene, in whose world frame the cameras are calibrated.
         tracks: the pixels and their cameras (``estim.read_image_tracks_csv``).
         free: the parameters to fit (registry names); default :func:`default_image_free`.
-        fixed: per ball, values to hold (or start from); as :func:`estim.fit`.
+        fixed: per ball, values to hold (or start from); as :func:`estim.fit`. Without
+            a ``t0`` a ball is released at its track's first row (a video's clock, or a
+            shot cut from a rally, starts where it starts: released at t = 0, the model
+            would fly unseen up to that row, through whatever lies on the way; a note
+            says so where that row is not at t = 0).
         restarts: restarts of every start, e from a grid over its range (default
             ``RESTARTS``).
         loss, steps, max_segments, prior, effects, progress: as :func:`estim.fit` (the
@@ -162,13 +166,19 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     if len(tracks.cameras) > registry.MAX_CAMERAS:
         raise ValueError(f"{len(tracks.cameras)} cameras: an image fit takes at most {registry.MAX_CAMERAS}")
     say = progress or (lambda msg: None)
-    given = fixed or {}
-    recs_of, t0_of, surfaces_of = {}, {}, {}
+    given = {b: dict(values) for b, values in (fixed or {}).items()}
+    recs_of, t0_of, surfaces_of, clock = {}, {}, {}, {}
     for b in tracks.balls:
         scene.ball(b)  # KeyError naming the scene's balls
         n = int(np.sum(tracks.valid(b)))
         if n < MIN_ROWS:
             raise ValueError(f"ball {b!r}: only {n} rows with both pixels; a fit needs at least {MIN_ROWS}")
+        first = float(np.min(tracks.t[b][tracks.valid(b)]))
+        if "t0" not in given.get(b, {}) and first != 0.0:
+            given.setdefault(b, {})["t0"] = first
+            clock[b] = (f"the track's clock starts at t = {first:.3f} s: the release is taken at its first row "
+                        "(to fit the release time: free t0, --also t0; to give it: fixed t0)")
+            say(f"{b}: {clock[b]}")
         t0 = t0_of[b] = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
         try:
             recs = reconstructions(tracks, b, scene, alternatives=STARTS)
@@ -205,6 +215,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     chosen = {b: _choose(_of(fits, b), recs_of[b][0]) for b in tracks.balls}
     result = FitResult({b: fit[0] for b, fit in chosen.items()})
     for b, bf in result.balls.items():
+        if b in clock:
+            bf.notes.insert(0, clock[b])
         if effects:
             attach_effects(scene, bf, chosen[b][2])
         bf.ball = b

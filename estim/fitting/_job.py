@@ -11,7 +11,7 @@ from ..model._scene import Scene, load_scene
 from ..tracks._camera import read_camera
 from ..tracks._csv import Tracks, TracksError, read_tracks_csv
 from ..tracks._exports import read_kinovea, read_tracker
-from ..tracks._image import ImageTracks, read_image_tracks_csv
+from ..tracks._image import read_image_tracks_csv
 from ..tracks._pixels import estimate_pixel_scale, estimate_surface_row, read_pixel_track
 from . import _registry as registry
 from ._fit import LATE_START, fit
@@ -70,7 +70,7 @@ def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **
     """Fit an image-track CSV (``t,ball,u,v[,camera]``) seen by the cameras of
     ``camera_paths`` (camera files, in the order the ``camera`` column numbers them):
     ``estim fit TRACKS --camera CAM ...``. Returns ``(result, tracks)``: the
-    :class:`FitResult` of :func:`fit_images` and the
+    :class:`FitResult` of :func:`estim.fitting._image.fit_image` and the
     :class:`~estim.tracks._image.ImageTracks` read."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     cameras = [read_camera(p) for p in camera_paths]
@@ -79,19 +79,7 @@ def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **
         raise ValueError(f"two camera files share the name {sorted({n for n in names if names.count(n) > 1})} "
                          "(a camera is named by its file's stem): rename one")
     tracks = read_image_tracks_csv(tracks_path, cameras, balls=[b.name for b in scene.balls])
-    return fit_images(scene, tracks, say=say, **options), tracks
-
-
-def fit_images(scene: Scene, tracks: ImageTracks, *, say=None, **options):
-    """Fit image tracks as ``estim fit --camera`` does: :func:`estim.fitting._image.fit_image`,
-    a track on a video's clock released at its first frame (:func:`_late_clock`)."""
-    fixed = {b: dict(v) for b, v in (options.pop("fixed", None) or {}).items()}
-    notes = {b: _late_clock(b, tracks.t[b][tracks.valid(b)], fixed, say) for b in tracks.balls}
-    result = fit_image(scene, tracks, progress=say, fixed=fixed or None, **options)
-    for b, note in notes.items():
-        if note:
-            result.balls[b].notes.insert(0, note)
-    return result
+    return fit_image(scene, tracks, progress=say, **options), tracks
 
 
 def _late_clock(ball: str, t, fixed: dict, say) -> str | None:
@@ -117,10 +105,10 @@ def fit_export(path, kind: str, scene: Scene | str, *, units: str, camera_path=N
                **options):
     """Fit a video tracker's export (``kind``: ``"tracker"`` or ``"kinovea"``;
     ``estim.tracks._exports``): in metres as a tracks file (:func:`fit_tracks`), in pixels
-    (``units="px"``) through the camera of ``camera_path`` (:func:`fit_images`). ``reader``
+    (``units="px"``) through the camera of ``camera_path`` (:func:`estim.fitting._image.fit_image`). ``reader``
     holds the reader's keywords (``ball``, ``origin``, ``y_up``, ``angle_deg``,
     ``time_unit``). Returns ``(result, data)``: data ``ball -> (t, position)`` for metres,
-    the :class:`ImageTracks` for pixels."""
+    the :class:`~estim.tracks._image.ImageTracks` for pixels."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
     if kind not in EXPORTS:
         raise ValueError(f"unknown export {kind!r}; estim reads {sorted(EXPORTS)}")
@@ -130,7 +118,7 @@ def fit_export(path, kind: str, scene: Scene | str, *, units: str, camera_path=N
         result, data = fit_tracks(scene, tracks, say=say, **options)
     else:
         data = tracks
-        result = fit_images(scene, tracks, say=say, **options)
+        result = fit_image(scene, tracks, progress=say, **options)
     result.source = os.fspath(path)
     return result, data
 
