@@ -280,7 +280,8 @@ def _(EFFECTS, FIT_S, Figure, MU_HELD, OUT, SHOT, SPIN_ERROR, TRUTH, bf, md_tabl
         A shot with topspin tilted by sidespin, tracked at 180 Hz with 2 mm of noise, fitted
         with `estim.fit(scene, {{"pingpong": (t, positions)}})` and the scene's defaults: the
         release position, velocity and spin (3-vectors), e, the friction coefficient mu and
-        the drag coefficient (the three the scene gives priors).
+        the drag coefficient (the scene gives these priors, and the spin a loose one:
+        0 ± 1000 rad/s per axis).
         The starting values come from the data (the release state from the first 0.1 s,
         the spin from the flight's curvature, e and mu from the velocity jump at the
         bounce). The fit took {FIT_S:.0f} s with JAX's compile; rms {bf.rms_m * 1e3:.2f} mm.

@@ -73,7 +73,7 @@ def test_a_narrow_prior_holds_the_parameter(stairs, data, alone):
 def test_scene_declares_priors(tmp_path):
     scene = estim.load_scene(TABLE)
     assert dict((n, (m, s)) for n, m, s in scene.priors) == {"e": (0.88, 0.05), "mu": (0.25, 0.1),
-                                                             "drag_coefficient": (0.5, 0.2)}
+                                                             "drag_coefficient": (0.5, 0.2), "spin": (0.0, 1000.0)}
     assert scene.with_geometry("seed").priors == scene.priors
     assert estim.load_scene(STAIRS).priors == ()
     assert registry.priors(scene, {"mu": None, "spin": (0.0, 300.0), "e_slope": None}) == {
@@ -114,7 +114,9 @@ def test_what_has_a_prior_is_fitted_by_default():
     scene (the drag coefficient in a vacuum) does not join."""
     table = estim.load_scene(TABLE)
     known = registry.priors(table)
-    assert registry.default_free(table, True, known)[:4] == ("e", "mu", "drag_coefficient", "x0")
+    # (The spin's prior adds nothing: the spin is free already, in its place.)
+    assert registry.default_free(table, True, known) == ("e", "mu", "drag_coefficient") + registry.expand(
+        ("position", "velocity", "spin"))
     assert registry.default_free(table, True, tuple(known) + ("lift_factor",))[3] == "lift_factor"
     assert "drag_coefficient" not in registry.default_free(table, True, registry.priors(table, {"drag_coefficient": None}))
     assert "drag_coefficient" not in registry.default_free(table.with_air(None), True, known)

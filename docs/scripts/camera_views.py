@@ -33,6 +33,7 @@ import mujoco
 import numpy as np
 
 import estim
+from estim.fitting import _registry as registry
 from estim.tracks._camera import Camera
 from estim.tracks._image import ImageTracks
 
@@ -223,7 +224,7 @@ def bound(scene, truth, t, cam, noise: float, draws: int = 4000) -> float:
     dpixel = np.asarray(jax.vmap(jax.jacfwd(lambda x: cam.project(x[None])[0]))(path_of(theta)))  # (frames, 2, 3)
     j = np.einsum("fij,fjk->fik", dpixel, dpath).reshape(-1, len(FREE))
     information = j.T @ j / noise**2
-    for name, _, sd in scene.priors:
+    for name, (_, sd) in registry.priors(scene).items():
         if name in FREE:
             information[FREE.index(name), FREE.index(name)] += 1.0 / sd**2
     z = np.random.default_rng(0).normal(size=(draws, len(FREE))) @ np.linalg.cholesky(np.linalg.inv(information)).T

@@ -572,8 +572,9 @@ def default_free(scene: Scene, lateral: bool, known: Iterable[str] = ()) -> tupl
         base = FACTOR_FREE + (LATERAL if lateral else ())
         return base + tuple(n for n in known if n not in base)
     coefficients = _law_coefficients(scene)
-    coefficients += tuple(n for n in known if n not in coefficients)
-    return coefficients + expand(("position", "velocity", "spin"))
+    state = expand(("position", "velocity", "spin"))
+    coefficients += tuple(n for n in known if n not in coefficients and n not in state)
+    return coefficients + state
 
 
 def side_view_free(scene: Scene) -> tuple[str, ...]:
