@@ -189,7 +189,16 @@ def test_rolls_match_the_jax_planner(balls):
     np.testing.assert_allclose(traj.velocity, ref_traj.velocity, rtol=tol, atol=tol)
 
 
-@pytest.mark.parametrize("keep", [None, (), ("events",), ("samples", "solution")])
+# Every part on every scene; the layouts of what a caller keeps on one scene of each
+# geometry (without and with edges: the two record layouts), each a program of its own
+# (about 40 s of compile on exact geometry, 2-core machine).
+KEEPS = [None, (), ("events",), ("samples", "solution")]
+
+
+@pytest.mark.parametrize(("scene_balls", "keep"),
+                         [pytest.param(name, keep, id=f"{name}-{'+'.join(keep or ('final',)) if keep is not None else 'all'}")
+                          for name in SCENES for keep in (KEEPS if name.startswith("stairs") else KEEPS[:1])],
+                         indirect=["scene_balls"])
 def test_trajectory_matches_the_jax_path(scene_balls, keep):
     """Samples, events, final state, completion and dense solution, packed: the kernel's
     rows are the JAX path's (integers bit for bit, numbers to rounding, padding alike)."""
@@ -218,18 +227,25 @@ def test_derivatives_match_the_jax_path(geometry):
     params = balls_in(stairs, 40 if geometry == "seed" else 16, seed=7)
     ts = jnp.linspace(0.0, 2.0, 9)
 
-    def outputs(e, mu_t, velocity, ts):
+    def simulate(e, mu_t, velocity, ts, **keep):
         p = estim.Params(e, mu_t, params.radius, params.position, velocity, compression=params.compression)
-        traj = estim.simulate(stairs, p, 2.0, ts=ts, throw=False)
+        return estim.simulate(stairs, p, 2.0, ts=ts, throw=False, **keep)
+
+    def outputs(*args):
+        traj = simulate(*args)
         return traj.final.position, jnp.where(jnp.isfinite(traj.events.t), traj.events.t, 0.0), traj.position
+
+    def final(*args):  # (the final state alone, as a user's gradient of it would keep: the
+        # reverse-mode program of the whole trajectory compiles twice as long)
+        return jnp.sum(simulate(*args, keep=()).final.position)
 
     args = (params.e, params.mu_t, params.velocity, ts)
     argnums = tuple(range(len(args)))
     jac = jax.jacfwd(outputs, argnums=argnums)(*args)
-    grad = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=argnums)(*args)
+    grad = jax.grad(final, argnums=argnums)(*args)
     with jax_path():
         jac_ref = jax.jacfwd(outputs, argnums=argnums)(*args)
-        grad_ref = jax.grad(lambda *a: jnp.sum(outputs(*a)[0]), argnums=argnums)(*args)
+        grad_ref = jax.grad(final, argnums=argnums)(*args)
     # (On exact geometry a ball whose bounces die out on an edge before it rolls over it
     # magnifies the last bit of each bounce, as test_plans_match_the_jax_planner allows for:
     # one ball here, its later event times' derivatives 7e-9 apart, 3e-8 relative, since
