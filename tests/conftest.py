@@ -235,7 +235,8 @@ def grad_final_x(scene, theta, radius, position, velocity, t_end, ts):
     """jax.grad of ball 0's final x w.r.t. its (e, mu_t, vx0), by reverse mode. The
     simulation keeps the final state alone (``keep=()``), as a user's gradient of it
     would: the reverse-mode program of the whole trajectory took twice as long to compile
-    (on exact geometry 170 s instead of 85 s, 2-core Intel machine)."""
+    (16 balls on exact geometry, tests/test_native.py: 170-179 s instead of 98 s, 2-core
+    Intel machine; docs/pages/speed.md)."""
 
     def f(th0):
         th = theta.at[0].set(th0)

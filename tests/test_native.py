@@ -235,8 +235,9 @@ def test_derivatives_match_the_jax_path(geometry):
         traj = simulate(*args)
         return traj.final.position, jnp.where(jnp.isfinite(traj.events.t), traj.events.t, 0.0), traj.position
 
-    def final(*args):  # (the final state alone, as a user's gradient of it would keep: the
-        # reverse-mode program of the whole trajectory compiles twice as long)
+    # Reverse mode keeps the final state alone, as a user's gradient of it would: the
+    # reverse-mode program of the whole trajectory compiles twice as long.
+    def final(*args):
         return jnp.sum(simulate(*args, keep=()).final.position)
 
     args = (params.e, params.mu_t, params.velocity, ts)
