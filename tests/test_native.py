@@ -192,12 +192,12 @@ def test_rolls_match_the_jax_planner(balls):
 # Every part on every scene; the layouts of what a caller keeps on one scene of each
 # geometry (without and with edges: the two record layouts), each a program of its own
 # (about 40 s of compile on exact geometry, 2-core machine).
-KEEPS = [None, (), ("events",), ("samples", "solution")]
+KEEPS = {"all": None, "final": (), "events": ("events",), "samples+solution": ("samples", "solution")}
 
 
 @pytest.mark.parametrize(("scene_balls", "keep"),
-                         [pytest.param(name, keep, id=f"{name}-{'+'.join(keep or ('final',)) if keep is not None else 'all'}")
-                          for name in SCENES for keep in (KEEPS if name.startswith("stairs") else KEEPS[:1])],
+                         [pytest.param(name, KEEPS[k], id=f"{name}-{k}")
+                          for name in SCENES for k in (KEEPS if name.startswith("stairs") else ["all"])],
                          indirect=["scene_balls"])
 def test_trajectory_matches_the_jax_path(scene_balls, keep):
     """Samples, events, final state, completion and dense solution, packed: the kernel's
