@@ -26,6 +26,7 @@ from estim.fitting import _fit
 from estim.fitting import _registry as registry
 from estim.fitting._fit import PARAMETERS, _plan_at, _Problem, _residuals
 from estim.fitting._loss import ROBUST_LOSSES, robust_curvature, robust_loss, robust_weight
+from estim.forward._constants import ROLL
 from estim.forward._trajectory import IMPACT, REST
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,7 +276,7 @@ def test_loss_gradient_matches_finite_differences(stairs):
     @jax.jit
     def loss(phi):
         pl, n_used = _plan_at(stairs, phi, problem, 48)  # the model's structure at phi
-        r, _ = _residuals(stairs, phi, problem, pl, n_used)
+        r, _ = _residuals(stairs, phi, problem, pl, n_used, rolls=True)
         return jnp.sum(robust_loss(r / problem.scale, "cauchy"))
 
     grad = np.asarray(jax.jit(jax.grad(loss))(jnp.asarray(phi0)))
@@ -355,6 +356,33 @@ def test_fit_3d_throw_along_y():
     assert "vy0 (m/s)" in result.format_table().splitlines()[0]
 
 
+def test_a_track_that_rolls_over_an_edge_is_fitted_with_the_roll():
+    """A golf ball that bounces out on a tread of the exact staircase, slides to its edge,
+    rolls over it and does so again one tread down (``ROLL`` segments in the truth's
+    plan), 100 fps, 1 mm noise: the fit's program without rolls meets them in its plans
+    and the fit runs with them (``estim.fitting._fit.fit_program``). The fitted model's
+    positions are ``estim.simulate``'s at the fitted values (those of the program without
+    rolls are its flights carried on through the rolls, centimetres off), and every known
+    parameter lies within 3 standard errors at the noise floor."""
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "stairs_exact.xml")
+    truth = dict(e=0.5, x0=0.6, z0=1.32, vx0=0.4)
+
+    def params(v):
+        return estim.Params.for_ball(scene, "golf", e=v["e"], mu_t=1.0, position=(v["x0"], v.get("y0", 0.0), v["z0"]),
+                                     velocity=(v["vx0"], v.get("vy0", 0.0), 0.0))
+
+    t = np.arange(0.0, 2.5 + 1e-9, 1 / 100)
+    traj = estim.simulate(scene, params(truth), 2.5, ts=jnp.asarray(t), keep=("samples", "solution"))
+    assert np.sum(np.asarray(traj.solution.structure.kind) == ROLL) == 2
+    obs = np.asarray(traj.position) + np.random.default_rng(0).normal(0.0, 1e-3, (t.size, 3))
+    bf = estim.fit(scene, {"golf": (t, obs)}, free=tuple(truth), fixed={"golf": {"mu_t": 1.0}}).balls["golf"]
+    assert bf.converged and bf.at_noise_floor, bf.notes
+    model = estim.simulate(scene, params(bf.values), 2.5, ts=jnp.asarray(bf.model_t)).position
+    np.testing.assert_allclose(bf.model_position, np.asarray(model), rtol=0, atol=1e-12)
+    for k, v in truth.items():
+        assert abs(bf.values[k] - v) < 3 * bf.stderr[k], (k, bf.values[k], v, bf.stderr[k])
+
+
 # ---------------------------------------------------------------------------------------
 # Real data: ping-pong drops on a table (shared/realdata beside the checkout)
 # ---------------------------------------------------------------------------------------
@@ -406,25 +434,34 @@ def test_robust_weight_and_curvature_are_the_losss_derivatives(kind):
 def test_fit_programs_compile_by_path_and_tier_up_on_the_ode_path(monkeypatch):
     """A fit's program is compiled with the closed form's options in a vacuum; in air with
     the quick options for its first ``FIT_ODE_TIER_UP`` calls of one signature, then with
-    the optimised ones (``estim._config``), counted per signature."""
+    the optimised ones (``estim._config``), counted per signature. On exact geometry in a
+    vacuum it runs without rolls first, again with them where a plan rolled (the result
+    is then the program's with rolls), and with them from then on for that signature."""
     used = []
 
     def fake_filter_jit(fun, compiler_options=None):
-        return lambda *a, **k: used.append(compiler_options) or fun(*a, **k)
+        return lambda *a, **k: used.append((compiler_options, k["rolls"])) or fun(*a, **k)
 
     monkeypatch.setattr(eqx, "filter_jit", fake_filter_jit)
-    program = _fit.fit_program(lambda scene, x, n: x * n)
-    vacuum = estim.load_scene(Path(__file__).resolve().parents[1] / "data" / "scenes" / "drop.xml")
-    air = estim.load_scene(Path(__file__).resolve().parents[1] / "data" / "scenes" / "drop_air.xml")
+    # A plan "rolls" where x > 10; the program returns x * n, and whether it had rolls.
+    program = _fit.fit_program(lambda scene, x, n, rolls: (x * n, rolls, ~rolls & (x > 10)))
+    scenes = Path(__file__).resolve().parents[1] / "data" / "scenes"
+    vacuum, air, edges = (estim.load_scene(scenes / f) for f in ("stairs.xml", "drop_air.xml", "drop.xml"))
     n = _config.FIT_ODE_TIER_UP
     closed_form, quick, optimised = (_config.compile_options(o) for o in
                                      (_config.FIT_COMPILE, _config.FIT_ODE_COMPILE, _config.FIT_ODE_OPTIMISED))
     for _ in range(n + 2):
-        assert float(program(vacuum, np.float64(2.0), 3)) == 6.0
-    assert used == [closed_form] * (n + 2)
+        assert program(vacuum, np.float64(2.0), 3) == (6.0, True)  # (no edges: nothing left out)
+    assert used == [(closed_form, True)] * (n + 2)
     used.clear()
     for _ in range(n + 1):
         program(air, np.ones(2), 3)
     program(air, np.ones(3), 3)  # another shape: another signature
     program(air, np.ones(2), 4)  # another static value: another signature
-    assert used == [quick] * n + [optimised] + [quick] * 2
+    assert used == [(quick, True)] * n + [(optimised, True)] + [(quick, True)] * 2
+    used.clear()
+    assert program(edges, np.float64(2.0), 3) == (6.0, False)
+    assert program(edges, np.float64(20.0), 3) == (60.0, True)  # a roll: run again, with rolls
+    assert program(edges, np.float64(2.0), 3) == (6.0, True)  # that signature keeps them
+    assert program(edges, np.float64(2.0), 4) == (8.0, False)  # another does not
+    assert [r for _, r in used] == [False, False, True, True, False]

@@ -52,9 +52,11 @@ from .._config import (
     FIT_ODE_TIER_UP,
     jit,
     require_x64,
+    signature,
 )
 from ..forward import _ode
 from ..forward._balls import check_outside, solids_at_release
+from ..forward._constants import ROLL
 from ..forward._contact import has_edges
 from ..forward._dispatch import ODE, closed_form_plan, path
 from ..forward._ode import OdeSettings
@@ -165,15 +167,42 @@ def fit_program(fun):
     ``FIT_ODE_COMPILE`` (quick to compile, slow to run) for the first ``FIT_ODE_TIER_UP``
     calls with one signature (shapes, dtypes and static values of the arguments), then
     ``FIT_ODE_OPTIMISED`` (``estim._config`` gives the figures; ``estim._config.jit``
-    counts the calls). The two programs give the same fits to rounding."""
+    counts the calls). The two programs give the same fits to rounding.
+
+    ``fun`` takes a static keyword ``rolls`` and returns, after its results, whether any
+    of its plans had a ``ROLL`` segment (``_rolled``). In the closed form on exact
+    geometry a call first runs the program without the rolls' closed forms
+    (``estim.forward._solver.replay``: three quarters of a drop fit's program on a box
+    table, and of its compile time), and runs again with them, from the same arguments,
+    where a plan had a roll, and from then on for that signature: the results are always
+    those of the program with rolls."""
     closed_form = jit(fun, options=FIT_COMPILE)
     ode = jit(fun, options=FIT_ODE_COMPILE, optimised=FIT_ODE_OPTIMISED, tier_up=FIT_ODE_TIER_UP)
+    rolling = set()  # signatures whose plans have had a roll
 
     @functools.wraps(fun)
     def call(scene, *args, **kwargs):
-        return (ode if path(scene) == ODE else closed_form)(scene, *args, **kwargs)
+        if path(scene) == ODE:
+            return ode(scene, *args, rolls=True, **kwargs)[:-1]
+        if not has_edges(scene):
+            return closed_form(scene, *args, rolls=True, **kwargs)[:-1]
+        key = signature((scene, args, kwargs))
+        if key not in rolling:
+            *out, rolled = closed_form(scene, *args, rolls=False, **kwargs)
+            if not np.any(gather(rolled)):
+                return tuple(out)
+            rolling.add(key)
+        return closed_form(scene, *args, rolls=True, **kwargs)[:-1]
 
     return call
+
+
+def _rolled(scene: Scene, pl, rolls: bool):
+    """Whether plan ``pl`` has a ``ROLL`` segment that a program without rolls (``rolls``
+    False, static) left out (``fit_program``)."""
+    if rolls or path(scene) == ODE:
+        return jnp.bool_(False)
+    return jnp.any(pl.decisions.kind == ROLL)
 
 
 def _ode_settings():
@@ -192,28 +221,29 @@ def _plan_at(scene: Scene, phi, problem: _Problem, max_segments: int):
     return pl, pl.n_segments
 
 
-def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used):
+def _simulate_at(scene: Scene, phi, problem: _Problem, pl, n_used, rolls: bool):
     """Model positions at the sample times, the events and the sample times, for physical
     values phi and their plan ``pl``: the closed form in a vacuum, the ODE path in a scene
-    with air. Derivatives replay the first ``n_used`` slots (the batch's largest count)."""
+    with air. Derivatives replay the first ``n_used`` slots (the batch's largest count).
+    ``rolls`` (static): whether the closed form follows ``ROLL`` segments (``fit_program``)."""
     params, ts, t_end = _model(scene, phi, problem)
     if path(scene) == ODE:
         parts = ode_finish(scene, params, t_end, ts, _ode_settings(), LISTED_EVENTS, pl, n_used,
                            frozenset({"samples", "events"}))
         return parts["position"], parts["events"], ts
-    segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, n_used)
+    segs = segments_of(scene, params, t_end, pl.decisions, pl.segments, n_used, rolls)
     law = law_of(scene)
-    pos, _ = sample(segs, pl.decisions, law, law.coefficients(params), scene.gravity, ts, has_edges(scene))
+    pos, _ = sample(segs, pl.decisions, law, law.coefficients(params), scene.gravity, ts, rolls and has_edges(scene))
     # The events only report the impacts (not differentiated): listed from the plan's
     # values, they stay out of the Jacobian's forward-mode trace.
     c = jax.lax.stop_gradient(law.coefficients(params))
     return pos, list_events(pl.segments, pl.decisions, law, c, scene.gravity, LISTED_EVENTS), ts
 
 
-def _residuals(scene, phi, problem, pl, n_used):
+def _residuals(scene, phi, problem, pl, n_used, rolls):
     """Masked residuals (flattened), which entries are valid, model positions, and the
     faces of the impacts within the data (``LISTED_EVENTS`` slots in time order, -1 past them)."""
-    pos, events, ts = _simulate_at(scene, phi, problem, pl, n_used)
+    pos, events, ts = _simulate_at(scene, phi, problem, pl, n_used, rolls)
     valid = problem.mask & (_clock(phi, problem) >= registry.value(phi, "t0"))[:, None]
     if problem.cameras is None:
         # A pixel track's metres are its pixels times a scale read off the data; the fitted
@@ -238,7 +268,7 @@ def _prior_rows(phi, problem: _Problem):
     return (phi - problem.prior[0]) * problem.prior[1] * problem.scale
 
 
-def _linearise(scene, free, loss, theta, problem, pl, n_used):
+def _linearise(scene, free, loss, theta, problem, pl, n_used, rolls):
     """Residuals ``r`` and their Jacobian ``J`` with respect to theta (forward mode, one
     simulation with the plan ``pl``), the diagnostics ``aux`` of ``_residuals``, the
     residuals in noise units ``u`` and the robust loss (inf where J is not finite). With
@@ -246,7 +276,7 @@ def _linearise(scene, free, loss, theta, problem, pl, n_used):
 
     def evaluate(theta):
         phi = registry.to_physical(theta, free, problem.fixed)
-        r, aux = _residuals(scene, phi, problem, pl, n_used)
+        r, aux = _residuals(scene, phi, problem, pl, n_used, rolls)
         r = jnp.concatenate([r, _prior_rows(phi, problem)])
         return r, (r, aux)
 
@@ -256,12 +286,12 @@ def _linearise(scene, free, loss, theta, problem, pl, n_used):
     return J, r, aux, u, jnp.where(jnp.all(jnp.isfinite(J)), value, jnp.inf)
 
 
-def _lm_step(scene, free, loss, carry, problem, pl, n_used):
+def _lm_step(scene, free, loss, carry, problem, pl, n_used, rolls):
     """One Levenberg-Marquardt iteration for one ball, whose model at theta has the plan
     ``pl``: residuals and Jacobian at theta (forward mode, one simulation), keep the best
     point seen, step."""
     theta, state, best = carry
-    J, r, aux, u, value = _linearise(scene, free, loss, theta, problem, pl, n_used)
+    J, r, aux, u, value = _linearise(scene, free, loss, theta, problem, pl, n_used, rolls)
     improved = value < state.best_value
     m = problem.obs.size  # the data's rows; the priors' follow
     best = jax.tree.map(lambda new, old: jnp.where(improved, new, old), (r[:m], J[:m], aux), best)
@@ -963,13 +993,14 @@ def _at_floor(diag, i, noise) -> bool:
 
 
 @fit_program
-def _run(scene, free, loss, steps, max_segments, theta, batch, mesh=None):
+def _run(scene, free, loss, steps, max_segments, theta, batch, mesh=None, rolls=True):
     """Levenberg-Marquardt on the robust loss, ball by ball: at most ``steps`` iterations,
     fewer where the loss has settled (``_settled``).
 
     Returns the best point per ball, the loss histories ``(balls, steps)`` (a ball that
-    stopped early repeats its last value), and the residuals, Jacobian (with respect to
-    theta), validity mask, model positions and impact count at the best point. Each ball
+    stopped early repeats its last value), the residuals, Jacobian (with respect to
+    theta), validity mask, model positions and impact count at the best point, and
+    whether a plan of the ball had a roll left out (``fit_program``). Each ball
     runs its own loop of iterations, one ball after the other
     (``estim.fitting._sharding.per_unit``, over the devices of ``mesh``); a ball's replay
     runs only the slots its own plan uses (``estim.forward._scan``).
@@ -982,18 +1013,18 @@ def _run(scene, free, loss, steps, max_segments, theta, batch, mesh=None):
                 (jnp.zeros(m, bool), jnp.zeros(pr.obs.shape), jnp.full(LISTED_EVENTS, -1, jnp.int32)))
 
         def going(loop):
-            k, _, history = loop
+            k, _, history, _ = loop
             return (k < steps) & ~_settled(history, k)
 
         def iteration(loop):
-            k, c, history = loop
+            k, c, history, rolled = loop
             pl, used = _plan_at(scene, registry.to_physical(c[0], free, pr.fixed), pr, max_segments)
-            c, value = _lm_step(scene, free, loss, c, pr, pl, used)
-            return k + 1, c, history.at[k].set(value)
+            c, value = _lm_step(scene, free, loss, c, pr, pl, used, rolls)
+            return k + 1, c, history.at[k].set(value), rolled | _rolled(scene, pl, rolls)
 
-        k, (_, state, best), history = jax.lax.while_loop(
-            going, iteration, (jnp.int32(0), (theta, _LM.init(theta), best), jnp.full(steps, jnp.inf)))
-        return state.best_params, jnp.where(jnp.arange(steps) < k, history, history[k - 1]), best
+        k, (_, state, best), history, rolled = jax.lax.while_loop(
+            going, iteration, (jnp.int32(0), (theta, _LM.init(theta), best), jnp.full(steps, jnp.inf), jnp.bool_(False)))
+        return state.best_params, jnp.where(jnp.arange(steps) < k, history, history[k - 1]), best, rolled
 
     return per_unit(one, mesh, theta, batch)
 

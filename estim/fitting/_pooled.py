@@ -92,6 +92,7 @@ from ._fit import (
     _objective,
     _plan_at,
     _report,
+    _rolled,
     _run,
     explain_misfit,
     fit_program,
@@ -309,27 +310,28 @@ def _arrow_step(shared_idx, local_idx, group, real, state: _Arrow, J, u, w, valu
 
 @fit_program
 def _run_joint(scene, free, shared_idx, local_idx, loss, steps, max_segments, state: _Arrow, best,
-               batch, group, real, mesh=None):
+               batch, group, real, mesh=None, rolls=True):
     """``steps`` joint iterations from ``state``; returns the state, the loss per ball per
-    step (G, steps) and the residuals, Jacobian, validity, positions and impacts at the
-    best point per unit (as ``estim.fitting._fit._run``), ``best`` where none was better."""
+    step (G, steps), the residuals, Jacobian, validity, positions and impacts at the best
+    point per unit (as ``estim.fitting._fit._run``), ``best`` where none was better, and
+    whether a plan had a roll left out (``estim.fitting._fit.fit_program``)."""
 
     def one(theta, pr):
         pl, used = _plan_at(scene, registry.to_physical(theta, free, pr.fixed), pr, max_segments)
-        J, r, aux, u, value = _linearise(scene, free, loss, theta, pr, pl, used)
-        return J / pr.scale, u, robust_weight(u, loss), value, (r, J, aux)
+        J, r, aux, u, value = _linearise(scene, free, loss, theta, pr, pl, used, rolls)
+        return J / pr.scale, u, robust_weight(u, loss), value, (r, J, aux), _rolled(scene, pl, rolls)
 
     def step(carry, _):
-        state, best = carry
-        Ju, u, w, value, diag = per_unit(one, mesh, state.theta, batch)
+        state, best, rolled = carry
+        Ju, u, w, value, diag, rolls_left_out = per_unit(one, mesh, state.theta, batch)
         new = _arrow_step(shared_idx, local_idx, group, real, state, Ju, u, w, value)
         improved = (group @ (new.best_value < state.best_value).astype(value.dtype)) > 0.5
         best = jax.tree.map(
             lambda x, y: jnp.where(improved.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), diag, best)
-        return (new, best), new.best_value
+        return (new, best, rolled | jnp.any(rolls_left_out)), new.best_value
 
-    (state, best), history = jax.lax.scan(step, (state, best), None, length=steps)
-    return state, history.T, best
+    (state, best, rolled), history = jax.lax.scan(step, (state, best, jnp.bool_(False)), None, length=steps)
+    return state, history.T, best, rolled
 
 
 def fit_clips(

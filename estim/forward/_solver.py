@@ -43,6 +43,8 @@ Both passes call the same ``advance`` function, so they agree to the last bit.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -158,11 +160,14 @@ class RollOver:
         return roll_axis(faces, face, p, v)[2] | is_corner(faces, face)
 
 
-def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decision, t_end, found) -> Segment:
+def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decision, t_end, found,
+            rolls: bool = True) -> Segment:
     """Carry the state (t, p, v) through one segment with structure ``d``, under the
     contact law ``law`` with the ball's coefficients ``c`` (``law.coefficients``).
     ``found``: the contact time the search found (values: used on an edge or a corner,
-    ``estim.forward._contact.face_entering_time``)."""
+    ``estim.forward._contact.face_entering_time``). ``rolls`` (static): ``False`` leaves
+    ``ROLL`` segments out (they are carried as if in flight), for a caller that knows its
+    plans have none (``replay``)."""
     g = gravity
     a = jnp.array([0.0, 0.0, -1.0]) * g
     slide_v, slide_a = _slide_frame(faces, d.support, v, a)
@@ -215,7 +220,7 @@ def advance(faces: Faces, gravity, law: AbstractContactLaw, c, t, p, v, d: Decis
     v1_post = jnp.where(unused, v, jnp.where(is_train, v_tr_end, v_b_post))
     normal, pivot = jnp.where(is_train, n_sup, 0.0), jnp.zeros(3)
 
-    if faces.curved:  # ROLL: over an edge or a corner, to its end or to t_end
+    if faces.curved and rolls:  # ROLL: over an edge or a corner, to its end or to t_end
         is_roll = d.kind == ROLL
 
         def roll(_):
@@ -422,11 +427,13 @@ def plan(scene: Scene, params, t_end, max_segments: int) -> Plan:
     return Plan(decisions=decisions, segments=segments, n_segments=count, complete=done == 1)
 
 
-def replay(scene: Scene, params, t_end, decisions: Decision, durations, n_used=None) -> Segment:
+def replay(scene: Scene, params, t_end, decisions: Decision, durations, n_used=None, rolls: bool = True) -> Segment:
     """Recompute every segment from the structure, differentiably (a ``lax.scan`` that runs
     only the first ``n_used`` segments, default all: ``estim.forward._scan``).
     ``durations``: each segment's duration in the plan (values; the contact times on edges
-    and corners are taken from them, not searched for again)."""
+    and corners are taken from them, not searched for again). ``rolls`` (static):
+    ``False`` for structures without ``ROLL`` segments (``advance``): on exact geometry
+    the roll's closed forms are most of a replay's program (``segments_of``)."""
 
     faces = faces_for(scene, params.contact_radius)
     a = jnp.array([0.0, 0.0, -1.0]) * scene.gravity
@@ -436,7 +443,7 @@ def replay(scene: Scene, params, t_end, decisions: Decision, durations, n_used=N
     def step(state, item):
         t, p, v = state
         d, found = item
-        seg = advance(faces, scene.gravity, law, c, t, p, v, d, t_end, found)
+        seg = advance(faces, scene.gravity, law, c, t, p, v, d, t_end, found, rolls)
         return (seg.t1, seg.p1, seg.v1_post), seg
 
     def idle(state):
@@ -454,27 +461,30 @@ def replay(scene: Scene, params, t_end, decisions: Decision, durations, n_used=N
     return segments
 
 
-@jax.custom_jvp
-def segments_of(scene: Scene, params, t_end, decisions: Decision, planned: Segment, n_used) -> Segment:
+@functools.partial(jax.custom_jvp, nondiff_argnums=(6,))
+def segments_of(scene: Scene, params, t_end, decisions: Decision, planned: Segment, n_used,
+                rolls: bool = True) -> Segment:
     """The segments of a plan, with the derivatives of ``replay``.
 
     The forward pass reuses the values ``plan`` already computed; only derivatives run
     ``replay`` (forward mode directly, reverse mode through JAX's transpose of it), over
     the first ``n_used`` segments (at least the plan's ``n_segments``; one number for a
-    whole batch makes the rest free, ``estim.forward._scan``).
+    whole batch makes the rest free, ``estim.forward._scan``). ``rolls`` (static):
+    ``False`` where the plan has no ``ROLL`` segment (``replay``; its derivatives are
+    wrong on one).
     """
     return planned
 
 
 @segments_of.defjvp
-def _segments_of_jvp(primals, tangents):
+def _segments_of_jvp(rolls, primals, tangents):
     scene, params, t_end, decisions, planned, n_used = primals
     d_scene, d_params, d_t_end, _, _, _ = tangents
 
     durations = jax.lax.stop_gradient(planned.t1 - planned.t0)
 
     def f(s, p, t):
-        return replay(s, p, t, decisions, durations, n_used)
+        return replay(s, p, t, decisions, durations, n_used, rolls)
 
     _, d_out = jax.jvp(f, (scene, params, t_end), (d_scene, d_params, d_t_end))
     return planned, d_out
