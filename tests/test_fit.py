@@ -444,7 +444,7 @@ def test_fit_programs_compile_by_path_and_tier_up_on_the_ode_path(monkeypatch):
 
     monkeypatch.setattr(eqx, "filter_jit", fake_filter_jit)
     # A plan "rolls" where x > 10; the program returns x * n, and whether it had rolls.
-    program = _fit.fit_program(lambda scene, x, n, rolls: (x * n, rolls, ~rolls & (x > 10)))
+    program = _fit.fit_program(lambda scene, x, n, rolls: (x * n, rolls, not rolls and x > 10))
     scenes = Path(__file__).resolve().parents[1] / "data" / "scenes"
     vacuum, air, edges = (estim.load_scene(scenes / f) for f in ("stairs.xml", "drop_air.xml", "drop.xml"))
     n = _config.FIT_ODE_TIER_UP
