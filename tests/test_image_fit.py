@@ -310,17 +310,20 @@ def test_too_few_rows_are_refused_in_pixels():
         fit_image(scene, tracks)
 
 
-@pytest.mark.parametrize("view", ["side", "angle"])
-def test_a_fast_shot_of_six_frames_is_fitted(view):
+@pytest.mark.parametrize(("view", "seed"), [("side", 0), ("angle", 0), ("behind", 1)])
+def test_a_fast_shot_of_six_frames_is_fitted(view, seed):
     """A drive at 12 m/s with 300 rad/s of topspin (MuJoCo's flight) tracked for six frames
     at 25 fps, its bounce among them: a shot hit hard is that short from hit to hit. It was
     refused (a fit needed 8 rows); 12 pixel coordinates hold the 11 parameters, and the fit
-    finds the bounce on the table and the path within 5 cm (2.4 and 2.5 cm; from behind
-    two of three noise draws end metres off: docs/pages/cameras.md, "Short tracks")."""
-    bf, path, _ = _mujoco_shot_fit(view, 0, (0.1, -1.5, 0.3), (0.0, 12.0, 1.3), (-300.0, 10.0, 40.0), t_end=0.4,
+    finds the bounce on the table and the path within 5 cm (2.4 and 2.5 cm). From behind,
+    with noise draw 1, no bounce time rebounded in the start (three rows a flight ran off
+    along their rays) and the fit ended 6.8 m off, behind the camera; its start now has the
+    bounce (``estim.tracks._reconstruct``: sixteenths of a frame, the restitution's prior)
+    and the fit ends within 7 cm (docs/pages/cameras.md, "Short tracks")."""
+    bf, path, _ = _mujoco_shot_fit(view, seed, (0.1, -1.5, 0.3), (0.0, 12.0, 1.3), (-300.0, 10.0, 40.0), t_end=0.4,
                                    frames=slice(3, 9), blunt_drag=0.25, damping=0.045, friction=0.3)
     assert bf.n_obs == 6 and bf.contacts == (("table", "+z"),)
-    assert np.mean(np.linalg.norm(bf.model_position - path, axis=1)) < 0.05
+    assert np.mean(np.linalg.norm(bf.model_position - path, axis=1)) < (0.07 if view == "behind" else 0.05)
 
 
 @pytest.mark.parametrize("fy, distortion", [(1400.0, ()), (1330.0, (-0.3, 0.1, 0.002, -0.001, 0.0))],

@@ -1,6 +1,7 @@
 """Image tracks: the t,ball,u,v[,camera] CSV, and the 3-D start through the physics
 (estim.tracks._reconstruct) against paths of known shape seen by known cameras."""
 
+import itertools
 import sys
 
 import numpy as np
@@ -218,6 +219,46 @@ def test_a_track_picked_up_three_frames_before_its_bounce_keeps_the_bounce(shot,
     assert np.argmin(path[later, 2]) in (3, 4) and len(rec.bounces) == 1, rec.bounces
     assert 0.12 <= rec.bounces[0] <= 0.16, rec.bounces
     assert np.mean(np.linalg.norm(rec.position - path[later], axis=1)) < tolerance
+
+
+def test_six_frames_about_a_bounce_keep_it_with_two_of_them_on_one_side():
+    """MuJoCo rally shots (seed 0's first three, drawn as the camera study draws them)
+    tracked for six frames about their bounce at 25 fps, as a shot hit hard spans from hit
+    to hit: four, three or two of them before it, seen from the side, at an angle and from
+    behind. A flight needed three rows, so with two after (or before) the bounce was merged
+    into one flight through it; with three a side no bounce time at the samples, between
+    them or at the quarter frames rebounded, or one did with almost none of its normal
+    speed (from behind each flight of three rows ran off along its rays, at 10-100 m/s).
+    14 of these 27 starts lacked their bounce (11 with none, 5.9-9.3 m off). The first and
+    the last flight beside a bounce on a surface now take two rows, sixteenths of a frame
+    are tried while no coarser time lowers the misfit by a third, and where none is found,
+    or one that keeps almost none of its normal speed (``TORN``), the search runs again
+    with the bounce's normal speeds tied by the scene's prior on e (``RESTITUTION_PRIOR``):
+    every start has its bounce within half a frame of the truth's and lies within 25 cm of
+    the true path (7.8 cm on average, 22.3 cm at the worst)."""
+    sys.path.insert(0, str(ROOT / "docs" / "scripts"))
+    import camera_views
+
+    rng, scene = np.random.default_rng(0), estim.load_scene(camera_views.SCENE)
+    t, fine = np.arange(0.0, 0.6, 1 / camera_views.FPS), np.arange(0.0, 0.6, 0.001)
+    for k, view in itertools.product(range(3), ("side", "angle", "behind")):
+        if view == "side":
+            truth, path = camera_views.draw_mujoco_shot(rng, t)
+            z = camera_views.mujoco_shot(truth["position"], truth["velocity"], truth["spin"], fine,
+                                         blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"],
+                                         friction=truth["mu"])[0][:, 2]
+            bounce = fine[np.argmin(z)]
+            after = int(np.searchsorted(t, bounce))  # the first frame after the bounce
+        for before in (4, 3, 2):
+            rows = slice(after - before, after + 6 - before)
+            cam = camera_views.VIEWS[view]
+            uv = np.asarray(cam.project(path[rows])) + 2.0 * np.random.default_rng([k, before]).normal(size=(6, 2))
+            tracks = ImageTracks("window", ("pingpong",), (cam,), {"pingpong": t[rows]}, {"pingpong": uv},
+                                 {"pingpong": np.zeros(6, np.int64)})
+            rec = reconstruct(tracks, "pingpong", scene)
+            assert len(rec.bounces) == 1 and abs(rec.bounces[0] - bounce) < 0.5 / camera_views.FPS, (k, view, before,
+                                                                                                   rec.bounces)
+            assert np.mean(np.linalg.norm(rec.position - path[rows], axis=1)) < 0.25, (k, view, before)
 
 
 @pytest.mark.parametrize(("view", "position", "velocity", "spin", "t_end"), [

@@ -36,7 +36,10 @@ At a bounce on a surface, friction changes the velocity along the surface by at 
 ``mu (1 + e) |v_n|``; a prior ``N(0, BOUNCE_PRIOR^2)`` per horizontal component on that
 change (one row each, weighted like the later flight's rows together, as the air's prior)
 ties the flight after a bounce to the flight before it. Without it a short flight seen nearly along its rays (four frames after
-the bounce, from behind) runs off along them, at tens of m/s.
+the bounce, from behind) runs off along them, at tens of m/s. Where the search finds no
+bounce, or one that keeps almost none of its normal speed, it runs again with the normal
+speeds tied too, ``v_z' = -e v_z`` with e the mean of the scene's prior
+(``RESTITUTION_PRIOR``, ``TORN``).
 
 Bounces are read from the pixels themselves (:func:`estim.tracks._flights.flight_contacts`
 on the image coordinate along which the track bounces most clearly). The result is a
@@ -45,6 +48,7 @@ start, not an estimate: drag, spin and the cameras' clock offsets are left to th
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import itertools
 import math
@@ -85,6 +89,28 @@ NARROW = 4.0
 # (m/s): friction changes it by at most mu (1 + e) |v_n|, about 1 m/s for a table-tennis
 # ball at 4 m/s onto the table (mu 0.25, e 0.9).
 BOUNCE_PRIOR = 1.0
+# Where no bounce is found (or a torn one, TORN), the search runs again with each bounce's
+# normal speeds tied by the scene's prior on the restitution (not where the scene has no
+# such prior): a row ``v_z' + e v_z = 0`` (after and before the bounce, e the prior's mean)
+# of this standard deviation (m/s), about the prior's spread (0.05 in the table-tennis
+# scene) times a bounce's normal speed (3-6 m/s), and the law's e against a real bounce's.
+# It ties the flights' scales through the bounce: six frames about a bounce seen from
+# behind, three rows a flight, let each flight run off along its rays (10-100 m/s), and no
+# bounce time rebounded. Only there: tied, a wrong bounce rebounds as readily as the right
+# one (a cusp read off noise was kept; a serve's single bounce passed for its two), so the
+# rebound no longer tells a bounce from a bend.
+RESTITUTION_PRIOR = 0.5
+# ... and where a bounce found untied misses that tie by more than this many standard
+# deviations: a flight run off along its rays rebounds with almost none of its normal
+# speed (the same windows: ratios of 0.0-0.08 for 0.88, starts 0.5-7 m off).
+TORN = 3.0
+# The fewest rows of the first or the last flight beside a bounce on the scene's surfaces
+# (3 elsewhere: a parabola's six unknowns from two pixels a row). Two: the bounce's height
+# and the flights' meeting fix the rest. A shot hit hard spans 6 frames at 25 fps, its
+# bounce among them; with two of them after it (or before), three rows a flight merged the
+# bounce into one flight through it, a start metres off (docs/pages/cameras.md, "Short
+# tracks").
+ON_SURFACE_ROWS = 2
 # The least noise (px) a start assumes of the pixels (the priors weigh against it): a clean
 # track (a third-difference noise of 0.02-0.2 px) otherwise gave starts off by metres in
 # depth (docs/pages/cameras.md, "Clean tracks").
@@ -252,9 +278,18 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
                                                                    DRAG_COEFFICIENT)
     rays = _Rays(tracks, ball, np.array([0.0, 0.0, -float(scene.gravity)]), drag)
     surfaces = _surfaces(scene, radius)
+    e = next((mean for name, mean, _ in scene.priors if name == "e"), None)
     if bounces is None:
         bounces = _find_bounces(rays, _bounce_times(tracks, ball), surfaces)
-    bounces = _viable(tuple(sorted(bounces)), rays.t)
+        if surfaces and e is not None and (not bounces or _torn(rays, bounces, surfaces, e)):
+            # None found, or a bounce that keeps almost none of its normal speed (a flight
+            # run off along its rays): again with the bounce's normal speeds tied
+            # (RESTITUTION_PRIOR), kept where its bounces fit the tied rays better.
+            tied = rays.tied(e)
+            found = _find_bounces(tied, (), surfaces)
+            if found and (not bounces or _tied_score(tied, found, surfaces) < _tied_score(tied, bounces, surfaces)):
+                rays, bounces = tied, found
+    bounces = _viable(tuple(sorted(bounces)), rays.t, bool(surfaces))
     t_all, view = tracks.t[ball], tracks.view[ball]
     out = []
     for x, keep, miss, _, _ in _on_surfaces(rays, bounces, surfaces, ranked=alternatives):
@@ -324,7 +359,8 @@ def _on_surfaces(rays, bounces, surfaces, chosen=None, ranked: int = 0):
         key = (not held, sum(s.outline is None for s in combo), rays.score(miss, x, bounces))
         found.append((key, (x, keep, miss, depth, combo)))
     if not found:
-        raise ValueError("a flight with fewer than 3 tracked rows: too few to fix its 3-D path from pixels")
+        raise ValueError(f"a flight with fewer than {ON_SURFACE_ROWS} tracked rows beside a bounce on a surface: too "
+                         "few to fix its 3-D path from pixels")
     found.sort(key=lambda f: f[0])
     if ranked:
         return [f[1] for f in found if f[0][:2] == found[0][0][:2]][:ranked]
@@ -336,6 +372,7 @@ class _Rays:
 
     def __init__(self, tracks: ImageTracks, ball: str, g: np.ndarray, drag):
         self.g = g
+        self.e = None  # the restitution a bounce's normal speeds keep (RESTITUTION_PRIOR); None: untied
         self.drag = drag  # v -> the air's drag acceleration at the default coefficient; None: a vacuum
         ok = tracks.valid(ball)
         self.rows = np.flatnonzero(ok)
@@ -352,6 +389,12 @@ class _Rays:
         # curvature, not noise, and the priors below would vanish against rays whose depth
         # no path can honour.
         self.noise = max(tracks.noise(ball), START_NOISE) / focal
+
+    def tied(self, e: float) -> _Rays:
+        """The same rays with each bounce's normal speeds tied in the ratio ``e``."""
+        out = copy.copy(self)
+        out.e = e
+        return out
 
     def refs(self, bounces):
         """Each flight's reference time: the first sample, then the bounces."""
@@ -374,9 +417,11 @@ class _Rays:
         keep = np.ones(self.rows.size, bool) if keep is None else keep
         depth = np.ones(self.rows.size) if depth is None else depth
         flight = np.searchsorted(np.asarray(bounces), self.t, side="right")
-        for n in np.bincount(flight, minlength=len(bounces) + 1):
-            if n < 3:
-                raise ValueError("a flight with fewer than 3 tracked rows: too few to fix its 3-D path from pixels")
+        on_surfaces = bool(bounces) and heights is not None and all(h is not None for h in heights)
+        least = _fewest(len(bounces) + 1, on_surfaces)
+        if np.any(np.bincount(flight, minlength=len(bounces) + 1) < least):
+            raise ValueError(f"a flight with fewer than {least.min()} tracked rows: too few to fix its 3-D path from "
+                             "pixels")
         # In air, the flights' own accelerations only where a bounce on a surface holds
         # the scale: without one, their freedom would let the path shrink onto the camera.
         air = self.drag is not None and heights is not None and any(h is not None for h in heights)
@@ -417,6 +462,9 @@ class _Rays:
                 if f > 0:
                     slip = u[1] - self.velocity_at(flights[f - 1], bounces[f - 1] - refs[f - 1])
                     cost += n * noise**2 * np.sum(slip[:2] ** 2) / BOUNCE_PRIOR**2
+                    if self.e is not None:
+                        before = self.velocity_at(flights[f - 1], bounces[f - 1] - refs[f - 1])[2]
+                        cost += n * noise**2 * (u[1][2] + self.e * before) ** 2 / RESTITUTION_PRIOR**2
         return float(np.sqrt(cost / miss.size))
 
     def velocity_at(self, unknowns, dt: float) -> np.ndarray:
@@ -446,7 +494,9 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
     # A bounce is tried between samples and at them: a drive's, seen from in front, fell on
     # a frame, and neither midpoint beside it rebounds.
     singles = np.union1d(mids, times[1:-1])
-    quarters = np.concatenate([0.75 * times[:-1] + 0.25 * times[1:], 0.25 * times[:-1] + 0.75 * times[1:]])
+    # Finer times between the samples, tried in turn where no coarser one rebounds.
+    finer = [np.concatenate([(1.0 - f) * times[:-1] + f * times[1:] for f in np.arange(1, n) / n if f != 0.5])
+             for n in (4, 16)]
 
     def prune(bounces, current):
         # A bounce stays only if it earns its place as an added one must (lowering the
@@ -474,13 +524,16 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
         while not (fits := current <= 2.0 * rays.noise) or not bounces:
             trial = [(plus(bounces, b), (b,)) for b in singles if b not in bounces]
             best, added = min(trial) if trial else (np.inf, ())
-            if not bounces and not np.isfinite(best):
-                # None rebounds there: four rows a flight fit well only near the bounce's
-                # own time (a track picked up three frames before it, seen from behind:
-                # at the samples and midpoints beside the bounce each fit ran off along
-                # its rays), so the quarter frames are tried as well.
-                trial = [(plus(bounces, b), (b,)) for b in quarters]
-                best, added = min(trial) if trial else (np.inf, ())
+            for grid in finer if not bounces else ():
+                if best < current / 1.5:
+                    break
+                # None rebounds there, or none that fits: a few rows a flight fit well only
+                # near the bounce's own time (a track picked up three frames before it, seen
+                # from behind: at the samples and midpoints beside the bounce each fit ran
+                # off along its rays; six frames, three a flight, seen from behind: only
+                # within a few ms of the bounce), so the quarter frames are tried, then
+                # sixteenths.
+                best, added = min([(best, added)] + [(plus(bounces, b), (b,)) for b in grid])
             if np.isfinite(best):
                 # The best bounce at its best time between the samples beside it, the next
                 # one then tried against it: a serve's first bounce at the midpoint 20 ms
@@ -532,6 +585,27 @@ def _find_bounces(rays: _Rays, bounces, surfaces) -> tuple[float, ...]:
     return tuple(bounces)
 
 
+def _normal_speeds(rays: _Rays, x, bounces) -> np.ndarray:
+    """``(len(bounces), 2)``: each bounce's vertical velocity before and after it."""
+    flights, refs = x.reshape(len(bounces) + 1, -1, 3), rays.refs(bounces)
+    return np.array([[rays.velocity_at(flights[k], b - refs[k])[2], flights[k + 1][1][2]]
+                     for k, b in enumerate(bounces)]).reshape(-1, 2)
+
+
+def _torn(rays: _Rays, bounces, surfaces, e: float) -> bool:
+    """Whether a bounce of the path through ``bounces`` misses the restitution ``e`` by more
+    than ``TORN`` prior standard deviations (``|v_z' + e v_z|``)."""
+    x = _on_surfaces(rays, tuple(bounces), surfaces)[0]
+    speeds = _normal_speeds(rays, x, tuple(bounces))
+    return bool(np.any(np.abs(speeds[:, 1] + e * speeds[:, 0]) > TORN * RESTITUTION_PRIOR))
+
+
+def _tied_score(tied: _Rays, bounces, surfaces) -> float:
+    """The misfit of the path through ``bounces`` with its normal speeds tied."""
+    x, _, miss, _, _ = _on_surfaces(tied, tuple(bounces), surfaces)
+    return tied.score(miss, x, tuple(bounces))
+
+
 def _rebounds(rays: _Rays, x, bounces) -> bool:
     """Every bounce of the path turns the ball's fall into a rise (the vertical velocity
     from below zero before to above zero after): a path that merely bends, which the air's
@@ -547,14 +621,24 @@ def _rebounds(rays: _Rays, x, bounces) -> bool:
     return True
 
 
-def _viable(bounces: tuple[float, ...], t: np.ndarray) -> tuple[float, ...]:
-    """``bounces`` without those that leave a flight fewer than 3 rows (too few to fix
-    it): such a bounce is merged into its neighbour flight (the fit still sees it, through
-    the physics, where the data show it)."""
+def _fewest(flights: int, on_surfaces: bool) -> np.ndarray:
+    """The fewest rows each of ``flights`` flights needs: 3, or ``ON_SURFACE_ROWS`` for the
+    first and the last beside a bounce on a surface (between two bounces a flight of two
+    rows is free to take the bend of a path for a bounce pair)."""
+    least = np.full(flights, 3)
+    if on_surfaces and flights > 1:
+        least[[0, -1]] = ON_SURFACE_ROWS
+    return least
+
+
+def _viable(bounces: tuple[float, ...], t: np.ndarray, on_surfaces: bool = False) -> tuple[float, ...]:
+    """``bounces`` without those that leave a flight fewer rows than it needs (:func:`_fewest`;
+    too few to fix it): such a bounce is merged into its neighbour flight (the fit still
+    sees it, through the physics, where the data show it)."""
     bounces = list(bounces)
     while bounces:
         counts = np.bincount(np.searchsorted(np.asarray(bounces), t, side="right"), minlength=len(bounces) + 1)
-        short = np.flatnonzero(counts < 3)
+        short = np.flatnonzero(counts < _fewest(len(bounces) + 1, on_surfaces))
         if not short.size:
             break
         k = int(short[0])
@@ -653,6 +737,16 @@ def _solve(rays: _Rays, bounces, flight, keep, depth, heights, air, previous):
                 a[:, m * k + 6:m * k + 8] = -eye[:2, :2] * w * dt
             blocks.append(a)
             values.append(rays.g[:2] * dt * w)
+            if rays.e is not None:
+                # Tied (RESTITUTION_PRIOR): v_z' + e (v_z + (g_z + a_z) dt) = 0, weighted alike.
+                w = noise_of(rays) / RESTITUTION_PRIOR * np.sqrt(counts[k + 1])
+                a = np.zeros((1, n))
+                a[0, m * (k + 1) + 5] = w
+                a[0, m * k + 5] = rays.e * w
+                if m == 9:
+                    a[0, m * k + 8] = rays.e * w * dt
+                blocks.append(a)
+                values.append(np.array([-rays.e * w * rays.g[2] * dt]))
     if m == 9:
         # The prior on each flight's air acceleration, weighted like the flight's samples together.
         noise = noise_of(rays)
