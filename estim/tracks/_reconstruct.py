@@ -359,8 +359,8 @@ def _on_surfaces(rays, bounces, surfaces, chosen=None, ranked: int = 0):
         key = (not held, sum(s.outline is None for s in combo), rays.score(miss, x, bounces))
         found.append((key, (x, keep, miss, depth, combo)))
     if not found:
-        raise ValueError(f"a flight with fewer than {ON_SURFACE_ROWS} tracked rows beside a bounce on a surface: too "
-                         "few to fix its 3-D path from pixels")
+        raise ValueError(f"a flight with too few tracked rows (3, or {ON_SURFACE_ROWS} for the first or the last beside "
+                         "a bounce on a surface) to fix its 3-D path from pixels")
     found.sort(key=lambda f: f[0])
     if ranked:
         return [f[1] for f in found if f[0][:2] == found[0][0][:2]][:ranked]
