@@ -383,6 +383,30 @@ def test_a_track_that_rolls_over_an_edge_is_fitted_with_the_roll():
         assert abs(bf.values[k] - v) < 3 * bf.stderr[k], (k, bf.values[k], v, bf.stderr[k])
 
 
+def test_a_track_that_starts_on_a_tread_is_fitted_from_there():
+    """A golf ball released sliding on step2's top of the seed's staircase (0.4 m/s along
+    x, 0.05 along y), off the tread's end after 1 s and down the stairs (60 fps, 2 mm
+    noise; the track of tests/test_registry.py's start test). The fit releases it from
+    the tread, z0 and vz0 held (``estim.fitting._fit._on_surface``: released any height
+    above the tread, the factor law's Zeno series there would stop it dead), and recovers
+    every other known parameter within 3 standard errors at the noise floor. The start
+    from the first flight's parabola had put the ball 4.9 m under the tread at t = 0,
+    thrown up at 9.8 m/s, and the fit ended with z0 2.4 m off, e 0.34 (true 0.5), 2.6 mm
+    rms for 2 mm of noise."""
+    scene = estim.load_scene(STAIRS)
+    truth = dict(e=0.5, mu_t=0.9, x0=0.5, y0=0.1, vx0=0.4, vy0=0.05)
+    p = estim.Params.for_ball(scene, "golf", e=0.5, mu_t=0.9, position=(0.5, 0.1, 1.25), velocity=(0.4, 0.05, 0.0))
+    t = np.arange(0.0, 2.5, 1 / 60)
+    obs = np.asarray(estim.simulate(scene, p, 2.5, ts=jnp.asarray(t)).position)
+    obs = obs + np.random.default_rng(0).normal(0.0, 2e-3, obs.shape)
+    bf = estim.fit(scene, {"golf": (t, obs)}).balls["golf"]
+    assert bf.converged and bf.at_noise_floor, bf.notes
+    assert bf.values["z0"] == 1.25 and bf.values["vz0"] == 0.0 and math.isnan(bf.stderr["z0"])
+    assert any(n.startswith("z0 = 1.25 held: the track starts with the ball on a surface") for n in bf.notes)
+    for k, v in truth.items():
+        assert abs(bf.values[k] - v) < 3 * bf.stderr[k], (k, bf.values[k], v, bf.stderr[k])
+
+
 # ---------------------------------------------------------------------------------------
 # Real data: ping-pong drops on a table (shared/realdata beside the checkout)
 # ---------------------------------------------------------------------------------------

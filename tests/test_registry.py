@@ -17,6 +17,7 @@ import pytest
 from conftest import ROOT
 
 import estim
+from estim.fitting import _fit
 from estim.fitting import _registry as registry
 from estim.fitting._initial import initial_guess, release_start
 
@@ -319,3 +320,38 @@ def test_spin_and_friction_starts_of_a_shot():
     assert np.linalg.norm(start - across) <= 0.1 * np.linalg.norm(across)
     t, pos = _shot(scene, spin, mu=0.7)
     assert release_start(t, pos, (0.0, 0.0, -G)).mu < 0.7
+
+
+def test_a_track_that_starts_on_a_tread_is_released_from_it():
+    """A golf ball released on step2's top of the seed's staircase, sliding at (0.4, 0.05)
+    m/s: 1 s on the tread, off its end, down the stairs (60 fps, 2 mm noise). The start
+    reads that run (``Initial.rest``: its times, the release point and speed the
+    simulation was given), the fit finds the tread under it (``_on_surface``: step2, the
+    centre one radius above its top) and releases the ball from there, z0 and vz0 held.
+    The same track 30 cm higher (a ball held still in the air) has the run but no surface
+    under it: its start stays the first flight's. Without the run, the first flight's
+    parabola carried back to t = 0 started the ball 4.9 m below the tread, thrown up at
+    9.8 m/s, and the fit ended 2.4 m off in z0 (tests/test_fit.py fits this track)."""
+    t, obs, scene = _tread_track()
+    s = release_start(t, obs, (0.0, 0.0, -G))
+    assert s.rest is not None and s.rest.start == 0.0
+    assert s.rest.stop == pytest.approx(1.0, abs=0.06)  # it leaves the edge 0.4 m on at 0.4 m/s
+    np.testing.assert_allclose(s.rest.position, (0.5, 0.1, 1.25), atol=2e-3)
+    np.testing.assert_allclose(s.rest.velocity, (0.4, 0.05, 0.0), atol=5e-3)
+    spec = scene.ball("golf")
+    free = ("e", "mu_t", "x0", "y0", "z0", "vx0", "vy0")
+    assert _fit._on_surface(scene, spec, s, free, {}) == ("step2", 1.25)
+    released = s.released_from_rest(1.25)
+    assert released.position == (*s.rest.position[:2], 1.25) and released.velocity == s.rest.velocity
+    assert _fit._on_surface(scene, spec, s, free, {"z0": 1.3}) is None  # the caller's z0 wins
+    higher = release_start(t, obs + (0.0, 0.0, 0.3), (0.0, 0.0, -G))
+    assert higher.rest is not None and _fit._on_surface(scene, spec, higher, free, {}) is None
+    assert higher.z0 == pytest.approx(s.z0 + 0.3, abs=1e-9)  # the flight's start
+
+
+def _tread_track():
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml")
+    p = estim.Params.for_ball(scene, "golf", e=0.5, mu_t=0.9, position=(0.5, 0.1, 1.25), velocity=(0.4, 0.05, 0.0))
+    t = np.arange(0.0, 2.5, 1 / 60)
+    exact = np.asarray(estim.simulate(scene, p, 2.5, ts=jnp.asarray(t)).position)
+    return t, exact + np.random.default_rng(0).normal(0.0, 2e-3, exact.shape), scene

@@ -55,7 +55,7 @@ from .._config import (
     signature,
 )
 from ..forward import _ode
-from ..forward._balls import check_outside, solids_at_release
+from ..forward._balls import check_outside, resting_on, solids_at_release
 from ..forward._constants import ROLL
 from ..forward._contact import has_edges
 from ..forward._dispatch import ODE, closed_form_plan, path
@@ -123,6 +123,7 @@ class _Problem(eqx.Module):
     view: jax.Array | None = None  # image tracks: (N,) int, the camera that saw each row
     cameras: CameraArrays | None = None  # image tracks: the cameras, obs holding (u, v, 0)
     prior: jax.Array | None = None  # (2, len(PARAMETERS)): priors' means and 1/sd (registry.prior_arrays)
+    held: jax.Array | None = None  # (len(free),) bool: fitted parameters this ball holds at its start (_on_surface)
 
 
 class ImageRows(NamedTuple):
@@ -281,6 +282,8 @@ def _linearise(scene, free, loss, theta, problem, pl, n_used, rolls):
         return r, (r, aux)
 
     J, (r, aux) = jax.jacfwd(evaluate, has_aux=True)(theta)
+    if problem.held is not None:  # (no gradient, no step: held where it starts)
+        J = jnp.where(problem.held, 0.0, J)
     u = r / problem.scale
     value = jnp.sum(robust_loss(u, loss))
     return J, r, aux, u, jnp.where(jnp.all(jnp.isfinite(J)), value, jnp.inf)
@@ -555,6 +558,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         _check_release_time(data, fixed)
     starts, problems, inits = [], [], []
     noises = []  # read from the data, before any rescaling
+    helds = []  # per ball, the fitted parameters it holds at its start (_on_surface)
     n_max = max(len(images[b].t) if b in images else len(np.asarray(data[b][0])) for b in names)
     for b in names:
         spec = scene.ball(ball_of[b])
@@ -567,6 +571,10 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         if scene.air is not None and b not in images:
             init = dataclasses.replace(init, spin=spin_start(init, t, pos, gravity, scene.air, spec.radius, spec.mass,
                                                              fixed.get(b, {}).get("lift_factor", 1.0)))
+        support = None if b in images else _on_surface(scene, spec, init, free, fixed.get(b, {}))
+        if support is not None:
+            init = init.released_from_rest(support[1])
+        helds.append(np.array([support is not None and n in RESTING for n in free]))
         inits.append(init)
         values = registry.starting_values(spec, init, free)
         values.update(fixed.get(b, {}))
@@ -599,7 +607,10 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
         ))
         starts.append(registry.to_theta(phi, free))
         say(f"{b}: {len(init.flights)} flights, {len(init.bounces)} bounces resolved; "
-            f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}")
+            f"start e={init.e:.3f} mu_t={init.mu_t:.3f} vx0={init.vx0:.3f}"
+            + ("" if support is None else f"; released on {support[0]}'s top (z0={support[1]:.4f} held)"))
+    if any(h.any() for h in helds):
+        problems = [dataclasses.replace(pr, held=h) for pr, h in zip(problems, helds, strict=True)]
     batch = jax.tree.map(lambda *xs: np.stack(xs), *problems)
     mesh = None if devices is None else mesh_of(devices)
 
@@ -929,6 +940,33 @@ def _gravity_vector(scene: Scene) -> np.ndarray:
     return np.array([0.0, 0.0, -float(scene.gravity)])
 
 
+# What a ball released resting on a surface holds (``_on_surface``), and how far (in noise
+# levels of the heights, at least RESTING_TOL_M) the run's mean height may lie from the
+# centre's height on a surface.
+RESTING = ("z0", "vz0")
+RESTING_TOL, RESTING_TOL_M = 4.0, 3e-3
+
+
+def _on_surface(scene: Scene, spec, init: Initial, free, fixed: dict) -> tuple[str, float] | None:
+    """``(solid, height)`` where the track starts with the ball on a surface: its first
+    samples keep one height (``Initial.rest``) at which the ball's centre lies on an upward
+    face of ``solid`` under it (``estim.forward._balls.resting_on``). The fit then releases
+    the ball from that run (``Initial.released_from_rest``), ``z0`` the height on that face
+    and ``vz0 = 0``, and holds both
+    (``_Problem.held``): under the seed's factor law a ball released any height above the
+    face bounces a Zeno series there whose every impact scales its horizontal speed by
+    mu_t, and stops, where the one on the face slides on and leaves its edge; below the
+    face it starts inside the solid. The loss is discontinuous at the data's own z0, and
+    one-sided: no derivative there moves the fit anywhere useful. None where the track
+    starts in flight, the caller fixes z0, or no face lies under the run."""
+    if init.rest is None or "z0" not in free or {"z0", "vz0"} & set(fixed):
+        return None
+    x, y, z = init.rest.position
+    point = (x, spec.position[1] if y is None else y, z)
+    noise = init.noise if math.isfinite(init.noise) else 0.0
+    return resting_on(scene, point, spec.radius - fixed.get("compression", 0.0), max(RESTING_TOL * noise, RESTING_TOL_M))
+
+
 def _restart(theta, free, fixed_phi, init: Initial, fixed: dict, e: float, rng) -> np.ndarray:
     """theta of a restart from the start ``theta``: e at ``e`` (a point of the grid over its
     range), mu_t at ``MU_DEFAULT`` where ``_restart_mu_at_default`` says so, mu_t perturbed
@@ -1086,8 +1124,12 @@ def _report(scene, ball, free, loss, theta, diag, i, problem, init, history, at_
         identifiable &= ~involved
     identifiable &= col > 1e-9 * max(col.max(), 1e-300)
     identifiable &= ~at_bound
+    held = np.zeros(len(free), bool) if problem.held is None else np.asarray(problem.held)
     for k, n in enumerate(free):
-        if at_bound[k]:
+        if held[k]:
+            notes.append(f"{n} = {values[n]:.6g} held: the track starts with the ball on a surface "
+                         f"({init.rest.stop - init.rest.start:.2f} s without vertical motion)")
+        elif at_bound[k]:
             notes.append(f"{n} = {values[n]:.6f} sits on the edge of its range: no standard error")
         elif not identifiable[k]:
             notes.append(f"{n} is not identifiable from this data" + (

@@ -24,11 +24,25 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from ..model._air import Air, spin_for_lift
-from ..tracks._flights import Flight, robust_noise, robust_std, split_flights
+from ..tracks._flights import Flight, robust_noise, robust_std, split_flights, still_range
+
+
+class Rest(NamedTuple):
+    """A run at a track's start without vertical motion (``_still_start``): a ball that
+    slides or rolls on a surface before it leaves the edge, or is held still. Its first and
+    last sample times, and the release state read from it at the release time: the
+    run's mean height, its horizontal line, no vertical speed (in the scene's coordinates;
+    ``None`` where the data do not say, as in ``Initial``)."""
+
+    start: float
+    stop: float
+    position: tuple[float, float | None, float]
+    velocity: tuple[float, float | None, float]
 
 
 @dataclass(frozen=True)
@@ -56,6 +70,13 @@ class Initial:
     direction: tuple[float, float, float] = (1.0, 0.0, 0.0)
     mu: float = float("nan")  # the friction law's coefficient (FRICTION_DEFAULT without a bounce)
     spin: tuple[float | None, float | None, float | None] = (None, None, None)  # rad/s (spin_start)
+    rest: Rest | None = None  # a run without vertical motion before the first flight (the release state above is the flight's)
+
+    def released_from_rest(self, height: float) -> Initial:
+        """The same start released from its ``rest`` at ``height`` (the centre's on the
+        surface it rests on; ``estim.fitting._fit``)."""
+        (x0, y0, _), (vx0, vy0, _) = self.rest.position, self.rest.velocity
+        return dataclasses.replace(self, x0=x0, y0=y0, z0=float(height), vx0=vx0, vy0=vy0, vz0=0.0)
 
     @property
     def position(self) -> tuple[float, float | None, float]:
@@ -90,6 +111,7 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
         raise ValueError("no flight could be resolved in this track (too few valid samples?)")
     f0 = flights[0]
     t0 = release_time
+    rest = _still_start(np.asarray(t, float), np.asarray(x, float), np.asarray(z, float), t0, f0.start, sigma)
     es, mus, frictions, bounces = [], [], [], []
     for a, b in zip(flights[:-1], flights[1:], strict=True):
         # The parabolas meet where their lines of w meet.
@@ -135,7 +157,28 @@ def initial_guess(t, x, z, g, *, release_time=0.0, e_default=E_DEFAULT, mu_defau
         flights=tuple(flights),
         bounces=tuple(bounces),
         noise=sigma,
+        rest=rest,
     )
+
+
+# The fewest samples of a still run at a track's start (``_still_start``).
+STILL_SAMPLES = 3
+
+
+def _still_start(t, x, z, t0, first_flight, sigma) -> Rest | None:
+    """The run at a track's start without vertical motion, if there is one: the valid
+    samples from the release ``t0`` to the first flight, at least ``STILL_SAMPLES`` of
+    them, whose heights stay within ``still_range(sigma)``. ``split_flights`` skips such a
+    run (no flight), and the first flight's parabola carried back over it to ``t0`` misses
+    every sample of it where the ball lay on a surface: one that slid off a tread 1 s after
+    the release read as thrown up at 10 m/s from 4 m under it. The fit decides whether a
+    surface holds the run (``estim.fitting._fit``): a ball held still in the air is
+    better started from the flight's parabola, which at least meets the flight."""
+    run = np.isfinite(t) & np.isfinite(x) & np.isfinite(z) & (t >= t0) & (t < first_flight)
+    if run.sum() < STILL_SAMPLES or np.ptp(z[run]) >= still_range(sigma):
+        return None
+    x0, vx0 = np.polynomial.polynomial.polyfit(t[run] - t0, x[run], 1)
+    return Rest(float(t[run][0]), float(t[run][-1]), (float(x0), None, float(np.mean(z[run]))), (float(vx0), None, 0.0))
 
 
 def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT, mu_default=MU_DEFAULT,
@@ -198,15 +241,16 @@ def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT
     init = initial_guess(t, horizontal @ u, h, g, **options)
     f0 = init.flights[0]
     lateral = horizontal @ w
-    inside = np.isfinite(t) & np.isfinite(lateral) & (t >= f0.start) & (t <= f0.stop)
-    if inside.sum() >= 2:
-        design = np.stack([np.ones(int(inside.sum())), t[inside]], axis=1)
-        l0, vl = np.linalg.lstsq(design, lateral[inside], rcond=None)[0]
-    else:  # no lateral sample in the first flight: no lateral speed to read
-        l0, vl = float(np.nanmedian(lateral)), 0.0
     t0 = release_time
+    l0, vl = _line_between(t, lateral, f0.start, f0.stop)
     release = init.x0 * u + (l0 + vl * t0) * w + init.z0 * up
     speed = init.vx0 * u + vl * w + init.vz0 * up
+    if init.rest is not None:  # in the scene's coordinates too, its lateral line through the first flight
+        (s0, _, h0), (vs, _, _) = init.rest.position, init.rest.velocity
+        l0, vl = _line_between(t, lateral, init.rest.start, f0.stop)
+        on = s0 * u + (l0 + vl * t0) * w + h0 * up
+        init = dataclasses.replace(init, rest=init.rest._replace(
+            position=tuple(float(c) for c in on), velocity=tuple(float(c) for c in vs * u + vl * w)))
     edges = (-np.inf, *init.bounces, np.inf)
     jumps = [j for k, tb in enumerate(init.bounces) if (j := _jump_at(t, pos, tb, up, edges[k], edges[k + 2])) is not None]
     e, noise = init.e, init.noise
@@ -223,6 +267,17 @@ def release_start(t, position, gravity, *, release_time=0.0, e_default=E_DEFAULT
         vx0=float(speed[0]), vy0=float(speed[1]), vz0=float(speed[2]), direction=tuple(float(c) for c in u),
         e=e, noise=noise, mu=float(np.clip(np.median([j[1] for j in jumps]), *FRICTION_RANGE)) if jumps else init.mu,
     )
+
+
+def _line_between(t, y, start, stop) -> tuple[float, float]:
+    """The least-squares line ``y = c0 + c1 t`` through the samples from ``start`` to
+    ``stop``; with fewer than two, the median of ``y`` and no slope."""
+    inside = np.isfinite(t) & np.isfinite(y) & (t >= start) & (t <= stop)
+    if inside.sum() < 2:
+        return float(np.nanmedian(y)), 0.0
+    design = np.stack([np.ones(int(inside.sum())), t[inside]], axis=1)
+    c0, c1 = np.linalg.lstsq(design, y[inside], rcond=None)[0]
+    return float(c0), float(c1)
 
 
 # Half-width (s) of the windows on either side of a bounce whose samples give the velocities

@@ -161,6 +161,24 @@ def solids_at_release(scene: Scene, params: Params) -> list[tuple[str, ...]]:
             + tuple(scene.names[scene.n_boxes + j] for j in np.flatnonzero(inside_plane[i])) for i in range(len(p))]
 
 
+def resting_on(scene: Scene, p, r, tol: float) -> tuple[str, float] | None:
+    """The solid whose upward face a ball of centre ``p (3,)`` and contact radius ``r``
+    rests on, and the centre's height there, or None: a box top whose outline holds the
+    centre (its x and y within the box's) or an upward plane, the centre within ``tol`` of
+    ``r`` above it (gravity points along -z). The highest such face where several are."""
+    p = np.asarray(p, dtype=np.float64)
+    found = []
+    for name, c, h in zip(scene.names, np.asarray(scene.box_centre), np.asarray(scene.box_half), strict=False):
+        if np.all(np.abs(p[:2] - c[:2]) <= h[:2]):
+            found.append((name, float(c[2] + h[2] + r)))
+    for name, n, o in zip(scene.names[scene.n_boxes:], np.asarray(scene.plane_normal),
+                          np.asarray(scene.plane_offset), strict=True):
+        if n[2] == 1.0:
+            found.append((name, float(o + r)))
+    found = [(name, z) for name, z in found if abs(p[2] - z) <= tol]
+    return max(found, key=lambda f: f[1]) if found else None
+
+
 def check_outside(scene: Scene, params: Params, names=None) -> None:
     """A ball must not start inside a solid (checked here when the values are concrete;
     inside a user's jit by ``_input_code``). ``names``: the balls' names, for the message."""

@@ -55,6 +55,7 @@ __all__ = [
     "robust_std",
     "robust_noise",
     "Flight",
+    "still_range",
     "split_flights",
     "FlightFit",
     "fit_flights",
@@ -163,6 +164,13 @@ def _line(t, y):
     return np.array([ym - c1 * tm, c1])
 
 
+def still_range(sigma: float) -> float:
+    """The height range (m) below which a run of samples has no vertical motion at the
+    noise level ``sigma`` (2 mm where that is NaN): ``max(8 sigma, 3 mm)`` (the range of
+    pure noise over a hundred samples is about 5 sigma)."""
+    return max(8.0 * (sigma if np.isfinite(sigma) else 0.002), 3e-3)
+
+
 def split_flights(t, x, z, g, *, noise=None, min_points=4):
     """Greedy segmentation of a track into flights, with gravity ``g`` known.
 
@@ -195,7 +203,7 @@ def split_flights(t, x, z, g, *, noise=None, min_points=4):
     sigma = robust_noise(w, order=2, t=t) if noise is None else noise
     level = sigma if np.isfinite(sigma) else 0.002
     tol = max(6.0 * level, 1e-3)
-    still = max(8.0 * level, 3e-3)  # a height range below this is no vertical motion
+    still = still_range(sigma)
     flights = []
     i, n = 0, len(t)
     while i + min_points <= n:
