@@ -54,6 +54,9 @@ class Initial:
     scene and no lateral speed). ``flights`` are fitted in the ball's plane of travel: their
     ``x`` lines are the horizontal coordinate along ``direction`` (the unit horizontal
     vector of the motion; ``(1, 0, 0)`` for a track without y), their ``w`` lines the height.
+    The release state is the first flight's, carried back to the release; where the track
+    starts with a run without vertical motion (``rest``), the fit may release the ball from
+    that run instead (:meth:`released_from_rest`, where a surface holds it).
     """
 
     e: float
