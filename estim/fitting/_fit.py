@@ -952,13 +952,13 @@ def _on_surface(scene: Scene, spec, init: Initial, free, fixed: dict) -> tuple[s
     samples keep one height (``Initial.rest``) at which the ball's centre lies on an upward
     face of ``solid`` under it (``estim.forward._balls.resting_on``). The fit then releases
     the ball from that run (``Initial.released_from_rest``), ``z0`` the height on that face
-    and ``vz0 = 0``, and holds both
-    (``_Problem.held``): under the seed's factor law a ball released any height above the
-    face bounces a Zeno series there whose every impact scales its horizontal speed by
-    mu_t, and stops, where the one on the face slides on and leaves its edge; below the
-    face it starts inside the solid. The loss is discontinuous at the data's own z0, and
-    one-sided: no derivative there moves the fit anywhere useful. None where the track
-    starts in flight, the caller fixes z0, or no face lies under the run."""
+    and ``vz0 = 0``, and holds both (``_Problem.held``): under the seed's factor law a ball
+    released any height above the face bounces a Zeno series there whose every impact
+    scales its horizontal speed by mu_t, and stops, where the one on the face slides on and
+    leaves its edge; below the face it starts inside the solid. The loss is discontinuous
+    at the data's own z0, and one-sided: no derivative there moves the fit anywhere useful.
+    None where the track starts in flight, the caller fixes z0 or vz0, or no face lies
+    under the run."""
     if init.rest is None or "z0" not in free or {"z0", "vz0"} & set(fixed):
         return None
     x, y, z = init.rest.position

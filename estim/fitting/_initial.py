@@ -174,7 +174,7 @@ def _still_start(t, x, z, t0, first_flight, sigma) -> Rest | None:
     them, whose heights stay within ``still_range(sigma)``. ``split_flights`` skips such a
     run (no flight), and the first flight's parabola carried back over it to ``t0`` misses
     every sample of it where the ball lay on a surface: one that slid off a tread 1 s after
-    the release read as thrown up at 10 m/s from 4 m under it. The fit decides whether a
+    the release read as thrown up at 10 m/s from 5 m under it. The fit decides whether a
     surface holds the run (``estim.fitting._fit``): a ball held still in the air is
     better started from the flight's parabola, which at least meets the flight."""
     run = np.isfinite(t) & np.isfinite(x) & np.isfinite(z) & (t >= t0) & (t < first_flight)
