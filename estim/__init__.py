@@ -15,6 +15,7 @@ if _sys.platform.startswith("linux") and not (_os.environ.get("DISPLAY") or _os.
 
 from . import _config  # noqa: E402, F401  (switches on float64 first)
 from ._config import enable_compilation_cache as enable_compilation_cache
+from ._config import optimised_programs as optimised_programs
 from .fitting._fit import BallFit as BallFit
 from .fitting._fit import FitResult as FitResult
 from .fitting._fit import fit as fit

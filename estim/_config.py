@@ -163,13 +163,19 @@ FAST_COMPILE = (("xla_cpu_use_fusion_emitters", False),)
 # in 6.8 s and 85 ms at level 0, 9.6 s and 17 ms at level 1, 10.3 s and 30 ms at level 2,
 # 13.3 s and 28 ms at the default (2-core reference machine, jax 0.10.2). A fit's program
 # is compiled at level 0 first (most processes fit once) and at level 1 once the same
-# program has run FIT_ODE_TIER_UP times in the process (many shots, many clips), where
-# the 2.8 s of a second compile pays for itself within a few fits
-# (``estim.fitting._fit.fit_program``).
+# program has run FIT_ODE_TIER_UP times in the process (many shots, many clips;
+# ``estim.fitting._fit.fit_program``). The count is the ski-rental one: the quick program
+# runs until its calls have cost about what the second compile costs. The one-camera
+# shot's program (`estim bench fit`, five calls per fit) compiled at level 1 in about
+# 15 s and ran in 0.22 s per call at level 0 (2-core development machine, session 49:
+# fits of 11.8 s then 1.5 s each at level 0, 15.5 s then 0.5 s at level 1): 15 / 0.22 =
+# 68 calls; the table-tennis shot's above, 9.6 s / 85 ms = 113. (After 8 calls, the
+# second shot of a process took 18.7 s instead of 1.5 s.) A process that knows it will
+# fit many shots can enter ``optimised_programs`` and skip the quick program.
 FIT_COMPILE = FAST_COMPILE
 FIT_ODE_COMPILE = FAST_COMPILE + (("xla_backend_optimization_level", 0),)
 FIT_ODE_OPTIMISED = FAST_COMPILE + (("xla_backend_optimization_level", 1),)
-FIT_ODE_TIER_UP = 8
+FIT_ODE_TIER_UP = 64
 # The closed-form `simulate`, one loop kernel (SMALL_LOOP_BYTES), with LLVM's level-1
 # optimisation. Chosen when its planning loop alone was a kernel (3 balls compiled in 4.4 s
 # instead of 5.2 s, ran as fast); as one loop over balls, levels 1 and 3 are within noise
@@ -217,6 +223,26 @@ def same_programs():
         yield
     finally:
         _HELD.on = held
+
+
+@contextlib.contextmanager
+def optimised_programs():
+    """Fits (and other tiered programs) called inside compile their optimised program
+    from their first call, and keep it after the block: for a process that knows it will
+    fit many shots, where the quick program and the count that tiers up would only cost
+    time. The one-camera shot of ``estim bench fit`` (2-core development machine): 15.5 s,
+    then 0.5 s per fit, against 11.8 s, then 1.5 s for its first 12 fits without it.
+
+    ```python
+    with estim.optimised_programs():
+        fits = [estim.fit_image(scene, tracks) for tracks in shots]
+    ```
+    """
+    on, _HELD.optimised = getattr(_HELD, "optimised", False), True
+    try:
+        yield
+    finally:
+        _HELD.optimised = on
 
 
 def top_level() -> bool:
@@ -289,7 +315,8 @@ def jit(fun: Callable | None = None, *, options: tuple[tuple[str, object], ...] 
             clock = spent.setdefault(key, [0.0, 0.0])
         except TypeError:  # (a static leaf that cannot be hashed: filter_jit will say so)
             return quick()(*args, **kwargs)
-        if clock is None:
+        if clock is None or getattr(_HELD, "optimised", False):
+            spent[key] = None
             if fast is None:
                 fast = wrap(compiler_options=compile_options(optimised))
             return fast(*args, **kwargs)

@@ -458,7 +458,8 @@ def test_robust_weight_and_curvature_are_the_losss_derivatives(kind):
 def test_fit_programs_compile_by_path_and_tier_up_on_the_ode_path(monkeypatch):
     """A fit's program is compiled with the closed form's options in a vacuum; in air with
     the quick options for its first ``FIT_ODE_TIER_UP`` calls of one signature, then with
-    the optimised ones (``estim._config``), counted per signature. On exact geometry in a
+    the optimised ones (``estim._config``), counted per signature, or from the first call
+    inside ``estim.optimised_programs``. On exact geometry in a
     vacuum it runs without rolls first, again with them where a plan rolled (the result
     is then the program's with rolls), and with them from then on for that signature."""
     used = []
@@ -483,6 +484,12 @@ def test_fit_programs_compile_by_path_and_tier_up_on_the_ode_path(monkeypatch):
     program(air, np.ones(3), 3)  # another shape: another signature
     program(air, np.ones(2), 4)  # another static value: another signature
     assert used == [(quick, True)] * n + [(optimised, True)] + [(quick, True)] * 2
+    used.clear()
+    with _config.optimised_programs():  # a process that will fit many shots: optimised at once
+        program(air, np.ones(5), 3)
+    program(air, np.ones(5), 3)  # and kept after the block
+    program(air, np.ones(6), 3)  # (a signature first seen outside it starts quick)
+    assert used == [(optimised, True)] * 2 + [(quick, True)]
     used.clear()
     assert program(edges, np.float64(2.0), 3) == (6.0, False)
     assert program(edges, np.float64(20.0), 3) == (60.0, True)  # a roll: run again, with rolls

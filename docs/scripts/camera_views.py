@@ -258,7 +258,8 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, 
                                  {"pingpong": np.zeros(t.size, np.int64)})
             start = time.perf_counter()
             try:
-                bf = estim.fit_image(scene, tracks).balls["pingpong"]
+                with estim.optimised_programs():  # (many shots: the optimised program from the first)
+                    bf = estim.fit_image(scene, tracks).balls["pingpong"]
             except Exception as err:  # a shot left without an answer is a result too
                 rows.append({"shot": k, "view": name, "error": f"{type(err).__name__}: {err}"})
                 continue

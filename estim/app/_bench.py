@@ -617,10 +617,9 @@ def camera_shot(folder: str) -> tuple[str, str]:
     return track, camera_path
 
 
-def _steady(fit, repeats: int, warm: int = 1):
-    """Median seconds of ``fit()`` compiled (after ``warm`` calls), and the last result."""
-    for _ in range(warm):
-        fit()
+def _steady(fit, repeats: int):
+    """Median seconds of ``fit()`` compiled (after one call), and the last result."""
+    fit()
     times = []
     for _ in range(max(repeats, 1)):
         t = time.perf_counter()
@@ -648,16 +647,17 @@ def run_fit_bench(*, repeats: int = 5, scene_path: str | None = None) -> dict:
         shot_scene = _table_shot(shot_track)
         shot_cold = _cli_fit_seconds(shot_track, shot_scene, os.path.join(tmp, "shot"), cold_env)
         table = load_scene(shot_scene)
-        shot_steady, shot = _steady(lambda: fit_csv(shot_track, table), repeats)
+        # Compiled: the optimised program a process that fits many shots ends on
+        # (estim._config.FIT_ODE_TIER_UP), from the first fit.
+        with _config.optimised_programs():
+            shot_steady, shot = _steady(lambda: fit_csv(shot_track, table), repeats)
         pixels, camera = camera_shot(tmp)
         # The camera issue's command (`estim fit TRACK --camera CAM --scene SCENE --json`),
         # and the same writing fit.json and its plots.
         camera_json = _cli_fit_seconds(pixels, shot_scene, None, cold_env, ("--camera", camera))
         camera_cold = _cli_fit_seconds(pixels, shot_scene, os.path.join(tmp, "camera"), cold_env, ("--camera", camera))
-        # Many shots in one process run the fit's program optimised once it has run
-        # FIT_ODE_TIER_UP times (estim._config): that program is the compiled one.
-        camera_steady, seen = _steady(lambda: fit_image_csv(pixels, [camera], table), repeats,
-                                      warm=_config.FIT_ODE_TIER_UP + 1)
+        with _config.optimised_programs():
+            camera_steady, seen = _steady(lambda: fit_image_csv(pixels, [camera], table), repeats)
 
     scene = load_scene(scene_path)
     steady, result = _steady(lambda: fit_csv(tracks, scene), repeats)

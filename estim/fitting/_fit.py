@@ -168,7 +168,8 @@ def fit_program(fun):
     ``FIT_ODE_COMPILE`` (quick to compile, slow to run) for the first ``FIT_ODE_TIER_UP``
     calls with one signature (shapes, dtypes and static values of the arguments), then
     ``FIT_ODE_OPTIMISED`` (``estim._config`` gives the figures; ``estim._config.jit``
-    counts the calls). The two programs give the same fits to rounding.
+    counts the calls), or that from the first call inside ``estim.optimised_programs``.
+    The two programs give the same fits to rounding.
 
     ``fun`` takes a static keyword ``rolls`` and returns, after its results, whether any
     of its plans had a ``ROLL`` segment (``_rolled``). In the closed form on exact
