@@ -506,6 +506,15 @@ def contact_normals(scene: Scene, face: Int[Array, "*n"], position: Float[Array,
     return jnp.where((flat_f >= 0)[:, None], n, 0.0).reshape(position.shape)
 
 
+def _length(x):
+    """|x|, 0 at x = 0 with a zero derivative there: the square root's derivative at 0 is
+    infinite, and reverse mode multiplies it by the zero cotangent of a branch that
+    ``where`` discards: every reverse-mode derivative of a ball that rolls off an edge
+    from rest (``w`` in ``roll_axis`` is 0) was NaN, its forward-mode ones finite."""
+    xx = inner(x, x)
+    return jnp.where(xx > 0, jnp.sqrt(jnp.where(xx > 0, xx, 1.0)), 0.0)
+
+
 def roll_axis(faces: Faces, face, p, v):
     """The horizontal line a ball at p with velocity v, pressed onto curved piece ``face``,
     rolls about (``estim.forward._roll``): ``(pivot, axis, exact)``, the axis oriented so
@@ -523,7 +532,7 @@ def roll_axis(faces: Faces, face, p, v):
     # part; on a corner from the vertex to the centre, or along the motion.
     m = faces.row[face, DIRECTION] * flat
     d, w = (p - pivot) * flat, v * flat
-    d_len, w_len = jnp.sqrt(inner(d, d)), jnp.sqrt(inner(w, w))
+    d_len, w_len = _length(d), _length(w)
     h = jnp.where(d_len > 0, d / jnp.where(d_len > 0, d_len, 1.0), w / jnp.where(w_len > 0, w_len, 1.0))
     h = jnp.where(edge, m / jnp.sqrt(jnp.maximum(inner(m, m), 1.0)), h)
     h = jnp.where(inner(h, h) > 0, h, jnp.array([1.0, 0.0, 0.0]))  # (at rest right above a vertex)
