@@ -323,6 +323,41 @@ def _pendulum_time(theta0, omega0, k, dt=1e-5):
     return t + hi
 
 
+# The roll of test_roll_matches_an_integrator: over the +x edge of a tread at (0.3, y, 1.4)
+# (up the x axis is +x), r 0.05, with 0.7 m/s along the edge; its programs are compiled once
+# for every case (run op by op, its derivatives took 5-8 s a case).
+ROLL_RADIUS, ROLL_PIVOT, ROLL_AXIS = 0.05, (0.3, 0.0, 1.4), (0.0, -1.0, 0.0)
+
+
+def _roll(theta, omega) -> Roll:
+    r = ROLL_RADIUS
+    p = jnp.asarray(ROLL_PIVOT) + r * jnp.stack([jnp.sin(theta), 0.0, jnp.cos(theta)]) + jnp.array([0.0, 0.2, 0.0])
+    v = r * omega * jnp.stack([jnp.cos(theta), 0.0, -jnp.sin(theta)]) + jnp.array([0.0, 0.7, 0.0])
+    return Roll(jnp.asarray(ROLL_PIVOT), jnp.asarray(ROLL_AXIS), p, v, G)
+
+
+@jax.jit
+def _roll_span(theta, omega):
+    roll = _roll(theta, omega)
+    return roll.reaches_top, roll.duration
+
+
+@jax.jit
+def _roll_states(theta, omega, taus):
+    return jax.vmap(_roll(theta, omega).state)(taus)
+
+
+@jax.jit
+def _roll_end(x):
+    """The roll's duration and its state halfway through it."""
+    roll = _roll(x[0], x[1])
+    q, u = roll.state(0.5 * roll.duration)
+    return jnp.concatenate([roll.duration[None], q, u])
+
+
+_roll_end_jacfwd, _roll_end_jacrev = jax.jit(jax.jacfwd(_roll_end)), jax.jit(jax.jacrev(_roll_end))
+
+
 @pytest.mark.parametrize("theta0, omega0", [(0.0, 1.0), (0.2, 0.5), (0.3, -3.0), (0.3, -8.0), (0.5, 0.0),
                                             (0.0, 1e-3), (0.1, 2 * np.sqrt(G / 0.05) * np.sin(0.05))])
 def test_roll_matches_an_integrator(theta0, omega0):
@@ -332,24 +367,14 @@ def test_roll_matches_an_integrator(theta0, omega0):
     inside it, energy along it; and its derivatives against central differences. The cases
     cover both signs of B = omega0^2 - 4 k sin^2(theta0 / 2) (B > 0: it could pass the
     top; B < 0: it turns), a turn, B = 0 to rounding, and a start from rest."""
-    r, k = 0.05, G / 0.05
-    pivot, axis = jnp.array([0.3, 0.0, 1.4]), jnp.array([0.0, -1.0, 0.0])  # up x axis = +x
-
-    def start(theta, omega):
-        p = pivot + r * jnp.array([jnp.sin(theta), 0.0, jnp.cos(theta)]) + jnp.array([0.0, 0.2, 0.0])
-        v = r * omega * jnp.array([jnp.cos(theta), 0.0, -jnp.sin(theta)]) + jnp.array([0.0, 0.7, 0.0])
-        return p, v
-
-    p0, v0 = start(theta0, omega0)
-    roll = Roll(pivot, axis, p0, v0, G)
-    if bool(roll.reaches_top):
+    r, k = ROLL_RADIUS, G / ROLL_RADIUS
+    reaches_top, duration = (x.item() for x in _roll_span(theta0, omega0))
+    if reaches_top:
         return  # (rolls back onto the face: checked by test_hard_cases)
-    duration = float(roll.duration)
     assert duration == pytest.approx(_pendulum_time(theta0, omega0, k), abs=1e-11)
     taus = np.linspace(0.0, duration, 7)
-    p, v = jax.vmap(roll.state)(jnp.asarray(taus))
-    p, v = np.asarray(p), np.asarray(v)
-    arm = p - np.asarray(pivot)
+    p, v = (np.asarray(x) for x in _roll_states(theta0, omega0, jnp.asarray(taus)))
+    arm = p - np.asarray(ROLL_PIVOT)
     np.testing.assert_allclose(np.hypot(arm[:, 0], arm[:, 2]), r, rtol=0, atol=1e-15)
     np.testing.assert_allclose(arm[:, 1], 0.2 + 0.7 * taus, rtol=0, atol=1e-15)
     energy = G * p[:, 2] + 0.5 * np.sum(v * v, axis=1)
@@ -358,20 +383,14 @@ def test_roll_matches_an_integrator(theta0, omega0):
     cos_star = (omega0**2 / k + 2 * np.cos(theta0)) / 3
     assert arm[-1, 2] / r == pytest.approx(cos_star, abs=1e-12)
 
-    def end(x):
-        p, v = start(x[0], x[1])
-        roll = Roll(pivot, axis, p, v, G)
-        q, u = roll.state(0.5 * roll.duration)
-        return jnp.concatenate([roll.duration[None], q, u])
-
     x = jnp.array([theta0, omega0])
     if abs(omega0**2 - 4 * k * np.sin(theta0 / 2) ** 2) < 1e-6:
         return  # (B ~ 0: derivatives lose eps / |B| to cancellation, estim.forward._roll)
-    jac = np.asarray(jax.jacfwd(end)(x))
-    rev = np.asarray(jax.jacrev(end)(x))
+    jac = np.asarray(_roll_end_jacfwd(x))
+    rev = np.asarray(_roll_end_jacrev(x))
     eps = 1e-6 * np.maximum(np.abs(np.asarray(x)), 1e-3)
-    fd = np.stack([(np.asarray(end(x + h * e)) - np.asarray(end(x - h * e))) / (2 * h) for h, e in zip(eps, np.eye(2), strict=True)],
-                  axis=1)
+    fd = np.stack([(np.asarray(_roll_end(x + h * e)) - np.asarray(_roll_end(x - h * e))) / (2 * h)
+                   for h, e in zip(eps, np.eye(2), strict=True)], axis=1)
     np.testing.assert_allclose(jac, fd, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(rev, jac, rtol=1e-10, atol=1e-12)
 

@@ -115,19 +115,33 @@ def micro_bounces(scene: estim.Scene, plan, i: int) -> np.ndarray:
     return np.where(reason == CONTACT, speed, np.nan)
 
 
+T_END, S = 3.0, 48  # the plans of the balls below
+
+
+@pytest.fixture(scope="module")
+def made():
+    """What ``scene_balls`` made, by scene: pytest makes an indirectly parametrised fixture
+    again for each parameter set that names the same scene."""
+    return {}
+
+
 @pytest.fixture(scope="module", params=list(SCENES))
-def scene_balls(request):
-    scene = SCENES[request.param]()
-    return scene, balls_in(scene, 300, seed=list(SCENES).index(request.param))
+def scene_balls(request, made):
+    """A scene, 300 balls in it and their plans by the JAX planner (10-25 s a scene on
+    exact geometry, made once for the tests of the scene)."""
+    name = request.param
+    if name not in made:
+        scene = SCENES[name]()
+        params = balls_in(scene, 300, seed=list(SCENES).index(name))
+        made[name] = scene, params, jax.jit(jax.vmap(lambda p: jax_plan(scene, p, T_END, S)))(flat_params(params))
+    return made[name]
 
 
 def test_plan_matches_the_jax_planner(scene_balls):
     """The kernel's plan of each ball is the JAX planner's: every decision (kind, support,
     bounce count, why the segment ends, face) bit for bit, every segment to rounding."""
-    scene, params = scene_balls
-    t_end, S = 3.0, 48
-    native = _native.plan(scene, params, t_end, S)
-    ref = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, t_end, S)))(flat_params(params))
+    scene, params, ref = scene_balls
+    native = _native.plan(scene, params, T_END, S)
     kinds = set(np.unique(np.asarray(ref.decisions.kind)).tolist())
     assert kinds == ({0, 1, 2, 3, 4} if scene.geometry == "exact" else {0, 1, 2, 3}), \
         "the balls should make flights, trains, slides (and rolls over edges)"
@@ -163,9 +177,9 @@ def test_rolls_match_the_jax_planner(balls):
     planner's, decision for decision, and their samples agree to rounding."""
     scene = SCENES["stairs_exact"]()
     params = sliding_off_treads(96, seed=1) if balls == "sliding_off_treads" else dropped_on_corners(64, seed=2)
-    t_end, S = (3.0, 96) if balls == "sliding_off_treads" else (1.5, 48)
-    native = _native.plan(scene, params, t_end, S)
-    ref = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, t_end, S)))(flat_params(params))
+    t_end, segments = (3.0, 96) if balls == "sliding_off_treads" else (1.5, 48)
+    native = _native.plan(scene, params, t_end, segments)
+    ref = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, t_end, segments)))(flat_params(params))
     kinds = np.asarray(ref.decisions.kind)
     spherical = np.any((kinds == 4) & np.all(np.asarray(ref.segments.normal) == 0, axis=-1), axis=1)
     assert np.sum(np.any(kinds == 4, axis=1)) >= 50 and np.all(np.asarray(ref.complete))
@@ -182,9 +196,9 @@ def test_rolls_match_the_jax_planner(balls):
         np.testing.assert_allclose(getattr(native.segments, name), getattr(ref.segments, name),
                                    rtol=tol, atol=tol, err_msg=name)
     ts = np.linspace(0.0, t_end, 301)
-    traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=S, throw=False, keep=("samples",))
+    traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=segments, throw=False, keep=("samples",))
     with jax_path():
-        ref_traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=S, throw=False, keep=("samples",))
+        ref_traj = estim.simulate(scene, params, t_end, ts=ts, max_segments=segments, throw=False, keep=("samples",))
     np.testing.assert_allclose(traj.position, ref_traj.position, rtol=tol, atol=tol)
     np.testing.assert_allclose(traj.velocity, ref_traj.velocity, rtol=tol, atol=tol)
 
@@ -202,15 +216,14 @@ KEEPS = {"all": None, "final": (), "events": ("events",), "samples+solution": ("
 def test_trajectory_matches_the_jax_path(scene_balls, keep):
     """Samples, events, final state, completion and dense solution, packed: the kernel's
     rows are the JAX path's (integers bit for bit, numbers to rounding, padding alike)."""
-    scene, params = scene_balls
-    ts = np.linspace(0.0, 3.0, 37)
-    traj = estim.simulate(scene, params, 3.0, ts=ts, keep=keep, throw=False)
+    scene, params, plans = scene_balls
+    ts = np.linspace(0.0, T_END, 37)
+    traj = estim.simulate(scene, params, T_END, ts=ts, keep=keep, throw=False)
     with jax_path():
-        ref = estim.simulate(scene, params, 3.0, ts=ts, keep=keep, throw=False)
+        ref = estim.simulate(scene, params, T_END, ts=ts, keep=keep, throw=False)
     assert traj.layout == ref.layout
     # (The balls whose plans part at a threshold, or that micro-bounce on an edge, as in
     # test_plan_matches_the_jax_planner: compared there.)
-    plans = jax.jit(jax.vmap(lambda p: jax_plan(scene, p, 3.0, 48)))(flat_params(params))
     ok = np.array([np.nanmin(micro_bounces(scene, plans, i), initial=np.inf) >= 1e-3
                    for i in range(params.e.shape[0])])
     np.testing.assert_array_equal(traj.flags[ok], ref.flags[ok])
