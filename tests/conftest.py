@@ -52,17 +52,18 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 # The modules that take longest (minutes each on the 2-core CI machine), longest first
-# (their totals in one full run, session 45, 2-core Intel Xeon: test_native about 1000 s,
-# test_pooled 680, test_hard_cases 440, then 340 down to 60 s). pytest-xdist hands each
-# worker a whole module at a time, in collection order (--no-loadscope-reorder in
-# pyproject.toml): started last, one of these would leave a worker running it alone at the
-# end of the run.
-LONG_MODULES = ("test_native.py", "test_pooled.py", "test_hard_cases.py", "test_image_fit.py",
-                "test_pooled_calibration.py", "test_exact_geometry.py", "test_fit.py", "test_notebooks_fit.py",
-                "test_cli.py", "test_friction_law.py", "test_bench_accuracy.py", "test_notebooks.py",
-                "test_config.py", "test_cli_scenes.py", "test_air_contacts.py", "test_ode.py", "test_compression.py",
-                "test_image_tracks.py", "test_simulate.py", "test_fit_friction.py", "test_fit_cli.py",
-                "test_laws.py", "test_properties.py", "test_fit_air.py", "test_notebooks_cameras.py")
+# (their totals in one full run, session 50, 2-core Intel Xeon, less what that session
+# saved in them: test_native about 700 s, test_hard_cases 300, test_exact_geometry 290, then
+# 230 down to 30 s). pytest-xdist hands each worker a whole module at a time, in collection
+# order (--no-loadscope-reorder in pyproject.toml): started last, one of these would leave a
+# worker running it alone at the end of the run.
+LONG_MODULES = ("test_native.py", "test_hard_cases.py", "test_exact_geometry.py", "test_pooled_calibration.py",
+                "test_image_fit.py", "test_cli.py", "test_pooled.py", "test_bench_accuracy.py", "test_fit.py",
+                "test_friction_law.py", "test_notebooks.py", "test_image_tracks.py", "test_ode.py",
+                "test_air_contacts.py", "test_config.py", "test_notebooks_fit.py", "test_simulate.py",
+                "test_fit_friction.py", "test_cli_scenes.py", "test_fit_air.py", "test_laws.py", "test_compression.py",
+                "test_properties.py", "test_sensitivity.py", "test_priors.py", "test_notebooks_cameras.py",
+                "test_scan.py", "test_tracks.py", "test_hits.py")
 
 
 def pytest_collection_modifyitems(config, items):
