@@ -238,8 +238,8 @@ def test_derivatives_match_the_jax_path(geometry):
     compressed), on the staircase of either geometry. Both paths differentiate the same
     replay of a plan (``estim.forward._solver.segments_of``: the plan enters as values), so
     their forward modes are compared, and the kernel's reverse mode with its forward mode:
-    the JAX path's reverse mode is the transpose of the same code (its program compiled
-    for 105 s of this test's 345 s on exact geometry, 2-core machine)."""
+    the JAX path's reverse mode is the transpose of the same code (and its program would
+    compile for about 105 s on exact geometry, 2-core machine)."""
     stairs = SCENES["stairs" if geometry == "seed" else "stairs_exact"]()
     params = balls_in(stairs, 40 if geometry == "seed" else 16, seed=7)
     ts = jnp.linspace(0.0, 2.0, 9)
