@@ -778,6 +778,26 @@ def test_bounces_against_a_riser_with_a_vanishing_vx(stairs, path):
                                np.stack([np.full(NT, 0.95), 0.5 * ts], 1), rtol=0, atol=1e-9)
 
 
+def test_a_ball_that_rolls_off_an_edge_from_rest_has_finite_reverse_mode_derivatives(stairs):
+    """A ball (r 0.2257) dropped at rest onto step3's corner bounces into a Zeno series on
+    step4's edge, settles on it a little past its top, rolls off from rest (no horizontal
+    velocity) and comes to rest on the ground. Reverse mode gives forward mode's
+    derivatives of the final x, finite (regression: NaN in every reverse-mode derivative of
+    the ball, from the square root of its zero horizontal speed in ``roll_axis``, on the
+    kernels and the JAX path alike; forward mode was finite). (The closed-form path: the
+    module's compiled derivative programs.)"""
+    ball = Ball(0.18388939650969116, 0.039686418459000006, (1.6426989679356205, 0.6326762076381514, 2.1790086128506316),
+                (0.0, 0.0, 0.0), r=0.225651796360997865)
+    solution = run(stairs, params_of([ball]), 2.0, "closed_form").solution
+    kind = np.asarray(solution.structure.kind[0])
+    rolls = np.flatnonzero(kind == ROLL)
+    assert rolls.size == 1 and np.all(np.asarray(solution.segments.v0[0])[rolls[0], :2] == 0.0)  # from rest
+    _, (jfin, _, _) = jacobian(stairs, params_of([ball]), 2.0, "closed_form")
+    grad = reverse_gradient(stairs, params_of([ball]), 2.0, "closed_form")
+    assert np.all(np.isfinite(jfin)) and np.all(np.isfinite(grad))
+    np.testing.assert_allclose(grad, jfin[0, 0], rtol=1e-9, atol=1e-12)
+
+
 # ---------------------------------------------------------------------------------------
 # Grazing
 # ---------------------------------------------------------------------------------------
@@ -1017,26 +1037,6 @@ def test_release_resting_on_a_surface(stairs, path, where):
 # ---------------------------------------------------------------------------------------
 # Extreme coefficients
 # ---------------------------------------------------------------------------------------
-
-
-def test_a_ball_that_rolls_off_an_edge_from_rest_has_finite_reverse_mode_derivatives(stairs):
-    """A ball (r 0.2257) dropped at rest onto step3's corner bounces into a Zeno series on
-    step4's edge, settles on it a little past its top, rolls off from rest (no horizontal
-    velocity) and comes to rest on the ground. Reverse mode gives forward mode's
-    derivatives of the final x, finite (regression: NaN in every reverse-mode derivative of
-    the ball, from the square root of its zero horizontal speed in ``roll_axis``, on the
-    kernels and the JAX path alike; forward mode was finite). (The closed-form path: the
-    module's compiled derivative programs.)"""
-    ball = Ball(0.18388939650969116, 0.039686418459000006, (1.6426989679356205, 0.6326762076381514, 2.1790086128506316),
-                (0.0, 0.0, 0.0), r=0.225651796360997865)
-    solution = run(stairs, params_of([ball]), 2.0, "closed_form").solution
-    kind = np.asarray(solution.structure.kind[0])
-    rolls = np.flatnonzero(kind == ROLL)
-    assert rolls.size == 1 and np.all(np.asarray(solution.segments.v0[0])[rolls[0], :2] == 0.0)  # from rest
-    _, (jfin, _, _) = jacobian(stairs, params_of([ball]), 2.0, "closed_form")
-    grad = reverse_gradient(stairs, params_of([ball]), 2.0, "closed_form")
-    assert np.all(np.isfinite(jfin)) and np.all(np.isfinite(grad))
-    np.testing.assert_allclose(grad, jfin[0, 0], rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("where", ["on a tread", "into a riser"])
