@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import ROOT, G, box_distance
+from conftest import ROOT, G, box_distance, derivative_jit
 
 import estim
 from estim.forward._constants import ROLL
@@ -177,31 +177,59 @@ def test_edge_contact_time_and_bounce_in_closed_form():
     np.testing.assert_allclose(np.asarray(ev.velocity_post[0]), -0.7 * vn + 0.9 * (v - vn), rtol=0, atol=1e-12)
 
 
+@derivative_jit
+def one_ball(scene, x, t_end, ts):
+    """One ball, x = (e, mu_t, radius, position, velocity): its event times, positions at
+    the two sample times ``ts``, final position and velocity, and their forward
+    derivatives with respect to x (``jax.jacfwd``); then its segments' roll axes and
+    whether it reached ``t_end`` (``throw=False``).
+    One compiled program for the one-ball derivative tests of this module on the exact
+    staircase, their finite differences included (a program of its own each compiled for
+    20-50 s, 2-core machine)."""
+
+    def f(x):
+        p = estim.Params(x[0], x[1], x[2], x[3:6], x[6:9])
+        traj = estim.simulate(scene, p, t_end, ts=ts, throw=False)
+        out = traj.events.t, traj.position, traj.final.position, traj.final.velocity
+        return out, (out, traj.solution.segments.normal, traj.complete)
+
+    jac, (out, axes, complete) = jax.jacfwd(f, has_aux=True)(x)
+    return out, jac, axes, complete
+
+
+def central_differences(scene, x, t_end, ts, output, ks, eps):
+    """d output(x) / d x[k] for k in ks by central differences of the program's values
+    (``output`` picks an array from its outputs): shape (*output, len(ks))."""
+    def value(k, step):
+        return np.asarray(output(one_ball(scene, x.at[k].add(step), t_end, ts)[0]))
+
+    return np.stack([(value(k, eps) - value(k, -eps)) / (2 * eps) for k in ks], axis=-1)
+
+
+EXACT_STAIRS = ROOT / "data" / "scenes" / "stairs_exact.xml"
+TWO_TIMES = jnp.array([0.05, 0.12])  # the sample times of every one_ball call here
+
+
 def test_edge_and_corner_event_times_and_their_derivatives_match_finite_differences():
     """d(event time)/d(release state, radius) at an edge and at a corner of step2: forward
     autodiff through the quartic's root (the implicit-function formula on a curved surface)
     against central differences of the root itself."""
-    scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
+    scene = estim.load_scene(str(EXACT_STAIRS))
     params, _, _ = _edge_throw(scene)
     corner = np.array([0.9, 0.6, 1.2]) + 0.05 * np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0)
     v_c = np.array([-0.8, -0.6, -1.5])
     a = np.array([0.0, 0.0, -G])
     v0 = v_c - a * 0.15
     corner_params = estim.Params(0.7, 0.9, 0.05, corner - v0 * 0.15 - 0.5 * a * 0.15**2, v0)
+    t_end = jnp.asarray(0.4)
     for prm, label in ((params, "+x+z"), (corner_params, "+x+y+z")):
-        theta = jnp.concatenate([jnp.asarray(prm.position), jnp.asarray(prm.velocity), jnp.array([0.05])])
-
-        def first_time(th):
-            p = estim.Params(0.7, 0.9, th[6], th[:3], th[3:6])
-            return estim.simulate(scene, p, 0.4, keep=("events",)).events.t[0]
-
+        x = jnp.concatenate([jnp.array([0.7, 0.9, 0.05]), jnp.asarray(prm.position), jnp.asarray(prm.velocity)])
         traj = estim.simulate(scene, prm, 0.4)
         assert scene.face_label(int(traj.events.face[0]))[1] == label
-        grad = np.asarray(jax.jacfwd(first_time)(theta))
-        eps = 1e-6
-        fd = np.array([(float(first_time(theta.at[k].add(eps))) - float(first_time(theta.at[k].add(-eps)))) / (2 * eps)
-                       for k in range(7)])
-        np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
+        _, (jt, _, _, _), _, complete = one_ball(scene, x, t_end, TWO_TIMES)
+        assert complete
+        fd = central_differences(scene, x, t_end, TWO_TIMES, lambda out: out[0][0], range(2, 9), 1e-6)
+        np.testing.assert_allclose(np.asarray(jt[0, 2:]), fd, rtol=1e-6, atol=1e-8)
 
 
 def test_quartic_roots_never_missed_against_dense_sampling():
@@ -219,16 +247,23 @@ def test_quartic_roots_never_missed_against_dense_sampling():
     roots = np.asarray(entering_times(jnp.asarray(A), jnp.asarray(B), jnp.asarray(C), jnp.asarray(r),
                                       jnp.zeros(n), jnp.asarray(horizon)))
     t = np.linspace(0.0, 1.0, 200001)
+    D, P = np.empty_like(t), np.empty_like(t)
     for i in range(n):
-        P = A[i] + B[i] * t[:, None] + C[i] * t[:, None] ** 2
-        D = np.sum(P * P, axis=1) - r[i] ** 2
+        D[:] = -r[i] ** 2
+        for k in range(3):  # (in place, a coordinate at a time: 5 times faster than the arrays of P)
+            np.multiply(t, C[i, k], out=P)
+            P += B[i, k]
+            P *= t
+            P += A[i, k]
+            P *= P
+            D += P
         falls = np.flatnonzero((D[:-1] > 0) & (D[1:] <= 0))
         found = roots[i][np.isfinite(roots[i])]
         assert len(found) == len(falls), (i, found, t[falls])
         np.testing.assert_allclose(found, t[falls], rtol=0, atol=1e-5 + 1e-12)
         for tau in found:
-            P = A[i] + B[i] * tau + C[i] * tau**2
-            assert abs(np.sum(P * P) - r[i] ** 2) < 1e-12
+            q = A[i] + B[i] * tau + C[i] * tau**2
+            assert abs(np.sum(q * q) - r[i] ** 2) < 1e-12
 
 
 @pytest.mark.parametrize("path", ["closed_form", "ode"])
@@ -282,18 +317,14 @@ def test_a_roll_with_almost_no_speed_along_its_edge_has_finite_derivatives():
     t_end`` exactly; every derivative of the final state is finite. (The time to the edge's
     end, ``(end - along) / vy``, had an infinite derivative there, made NaN by the minimum
     with the roll's own end.)"""
-    scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
+    scene = estim.load_scene(str(EXACT_STAIRS))
     r, top, t_end = 0.05, 1.2, 1.5
-
-    def final(theta):
-        p = estim.Params(0.5, 1.0, r, jnp.array([0.5, 0.0, top + r]), jnp.stack([theta[0], theta[1], 0.0]))
-        end = estim.simulate(scene, p, t_end).final
-        return jnp.concatenate([end.position, end.velocity])
-
-    jac = jax.jit(jax.jacfwd(final))
     for vy in (0.0, 1e-160, 3.91994034e-308):
-        J = np.asarray(jac(jnp.array([0.5, vy])))
-        assert np.all(np.isfinite(J)), (vy, J)
+        x = jnp.array([0.5, 1.0, r, 0.5, 0.0, top + r, 0.5, vy, 0.0])
+        _, (_, _, jp, jv), _, complete = one_ball(scene, x, jnp.asarray(t_end), TWO_TIMES)
+        assert complete
+        J = np.concatenate([np.asarray(jp), np.asarray(jv)])[:, 6:8]  # (final state, (vx0, vy0))
+        assert np.all(np.isfinite(np.concatenate([np.asarray(jp), np.asarray(jv)]))), vy
         assert J[1, 1] == pytest.approx(t_end, abs=1e-12) and J[4, 1] == pytest.approx(1.0, abs=1e-12), vy
 
 
@@ -554,20 +585,18 @@ def test_derivatives_through_a_roll_over_a_corner_match_finite_differences():
     """d(positions at 0.05 s and 0.12 s, final position)/d(vx0, vy0) of a ball dropped onto a
     corner that rolls over it off the vertical plane through the vertex, then over an
     edge: jacfwd through the closed form against central differences."""
-    scene = estim.load_scene(str(ROOT / "data" / "scenes" / "stairs_exact.xml"))
+    scene = estim.load_scene(str(EXACT_STAIRS))
     vertex, r = np.array([2.7, -0.6, 0.6]), 0.058
     out = np.array([np.sin(0.3) * np.cos(0.7), -np.sin(0.3) * np.sin(0.7), np.cos(0.3)])
+    x = jnp.concatenate([jnp.array([1e-12, 1.0, r]), jnp.asarray(vertex + (r + 1e-4) * out), jnp.array([0.03, 0.15, -0.05])])
+    t_end = jnp.asarray(0.2)
 
-    def positions(theta):
-        params = estim.Params(1e-12, 1.0, r, jnp.asarray(vertex + (r + 1e-4) * out), jnp.stack([theta[0], theta[1], -0.05]))
-        traj = estim.simulate(scene, params, 0.2, ts=jnp.array([0.05, 0.12]), keep=("samples", "solution"))
-        return jnp.concatenate([traj.position.ravel(), traj.final.position]), traj.solution.segments.normal
+    def positions(out):
+        return np.concatenate([np.ravel(out[1]), np.asarray(out[2])])
 
-    theta = jnp.array([0.03, 0.15])
-    _, axes = positions(theta)
+    _, (_, js, jf, _), axes, complete = one_ball(scene, x, t_end, TWO_TIMES)
+    assert complete
     assert np.all(np.asarray(axes[1]) == 0)  # (the second segment: the roll over the corner)
-    jac = np.asarray(jax.jacfwd(lambda th: positions(th)[0])(theta))
-    eps = 1e-7
-    fd = np.stack([(positions(theta.at[i].add(eps))[0] - positions(theta.at[i].add(-eps))[0]) / (2 * eps)
-                   for i in range(2)], axis=1)
+    jac = np.concatenate([np.asarray(js).reshape(-1, 9), np.asarray(jf)])[:, 6:8]
+    fd = central_differences(scene, x, t_end, TWO_TIMES, positions, (6, 7), 1e-7)
     np.testing.assert_allclose(jac, fd, rtol=0, atol=1e-7 * np.abs(jac).max())
