@@ -24,6 +24,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import CACHE_DIR
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NOTEBOOKS = ROOT / "notebooks"
@@ -35,7 +36,12 @@ def run_notebook(name: str, out: pathlib.Path) -> subprocess.CompletedProcess:
     env = dict(os.environ, ESTIM_NOTEBOOK_OUT=str(out), ESTIM_NOTEBOOK_FAST="1")
     env.setdefault("MUJOCO_GL", "egl")  # offscreen rendering without a display
     env.pop("DISPLAY", None)  # headless, as in CI: nothing may open a window
-    env.pop("ESTIM_NO_CACHE", None)  # the notebooks switch the cache on, as for a user (conftest)
+    # The notebooks switch JAX's persistent cache on, as for a user (conftest turns it off
+    # for the suite's own processes), here in the run's cache: they load what the suite's
+    # tests compiled before them (the same study, fits and derivatives) instead of
+    # compiling it again.
+    env.pop("ESTIM_NO_CACHE", None)
+    env["ESTIM_CACHE_DIR"] = str(CACHE_DIR)
     proc = subprocess.run([sys.executable, str(NOTEBOOKS / name)], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, f"{name} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-8000:]}"
