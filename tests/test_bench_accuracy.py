@@ -1,6 +1,6 @@
 """``estim bench accuracy`` (the work-precision study of docs/pages/accuracy.md), in its
 quick mode: Tsit5 at rtol 1e-4 and 1e-9 (the default) on the seed scene without air (against the closed
-form) and in still air (against Tsit5 at rtol 1e-12).
+form), in still air and for a spinning table-tennis shot (against Tsit5 at rtol 1e-12).
 
 The truths: without air every Runge-Kutta method integrates the parabolas exactly, so the
 ODE path must reproduce the closed form's event times, final positions and gradient to
@@ -79,6 +79,21 @@ def test_air_default_agrees_with_the_reference(quick):
     # Air changes the answer: the reference differs from the vacuum run by far more.
     vac = np.array(r["vacuum"]["closed_form_gradient"])
     assert np.max(np.abs(np.array(air["reference"]["gradient"]) - vac)) > 1e3 * default["gradient_error"]
+
+
+def test_shot_default_agrees_with_the_reference(quick):
+    """The spinning table-tennis shot in air: at the default setting, and in the plain
+    diffrax loop, the same single bounce as the tight reference, within 1e-9 m of it, and
+    the same gradient."""
+    r, _, _ = quick
+    shot = r["shot"]
+    assert shot["reference"]["events"] == [1]
+    default = next(x for x in shot["rows"] if x["rtol"] == 1e-9)
+    assert default["events_match"] and default["complete"]
+    assert default["event_time_error"] < 1e-9 and default["final_position_error"] < 1e-9, default
+    assert default["gradient_error"] < 1e-5 * np.max(np.abs(shot["reference"]["gradient"]))
+    loop = shot["event_loop"]
+    assert loop["events_match"] and loop["final_position_error"] < 1e-9, loop
 
 
 def test_files_written_into_out_and_nothing_into_docs(quick):
