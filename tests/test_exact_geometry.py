@@ -182,10 +182,9 @@ def one_ball(scene, x, t_end, ts):
     """One ball, x = (e, mu_t, radius, position, velocity): its event times, positions at
     the two sample times ``ts``, final position and velocity, and their forward
     derivatives with respect to x (``jax.jacfwd``); then its segments' roll axes and
-    whether it reached ``t_end`` (``throw=False``).
-    One compiled program for the one-ball derivative tests of this module on the exact
-    staircase, their finite differences included (a program of its own each compiled for
-    20-50 s, 2-core machine)."""
+    whether it reached ``t_end`` (``throw=False``). One compiled program for the one-ball
+    derivative tests of this module on the exact staircase, their finite differences
+    included (a program of its own each compiled for 20-50 s, 2-core machine)."""
 
     def f(x):
         p = estim.Params(x[0], x[1], x[2], x[3:6], x[6:9])
@@ -323,9 +322,9 @@ def test_a_roll_with_almost_no_speed_along_its_edge_has_finite_derivatives():
         x = jnp.array([0.5, 1.0, r, 0.5, 0.0, top + r, 0.5, vy, 0.0])
         _, (_, _, jp, jv), _, complete = one_ball(scene, x, jnp.asarray(t_end), TWO_TIMES)
         assert complete
-        J = np.concatenate([np.asarray(jp), np.asarray(jv)])[:, 6:8]  # (final state, (vx0, vy0))
-        assert np.all(np.isfinite(np.concatenate([np.asarray(jp), np.asarray(jv)]))), vy
-        assert J[1, 1] == pytest.approx(t_end, abs=1e-12) and J[4, 1] == pytest.approx(1.0, abs=1e-12), vy
+        J = np.concatenate([np.asarray(jp), np.asarray(jv)])  # (final position and velocity, x)
+        assert np.all(np.isfinite(J)), vy
+        assert J[1, 7] == pytest.approx(t_end, abs=1e-12) and J[4, 7] == pytest.approx(1.0, abs=1e-12), vy
 
 
 def _pendulum_time(theta0, omega0, k, dt=1e-5):
