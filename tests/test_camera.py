@@ -118,6 +118,29 @@ def test_reads_what_opencvs_file_storage_writes(tmp_path, ext):
     assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
 
 
+def _rows(a) -> str:
+    return "".join(f"  - {list(map(float, row))}\n" for row in np.atleast_2d(a))
+
+
+@pytest.mark.parametrize("text", [
+    # A YAML block list per matrix row and per vector item, comments and a blank line between.
+    "camera_matrix:\n" + _rows(K) + "distortion_coefficients:\n" + _rows(DIST[:, None])
+    + "rvec:  # world to camera\n" + "".join(f"- {x}  # axis {k}\n\n" for k, x in enumerate(RVEC))
+    + "tvec:\n" + _rows(TVEC[:, None]),
+    # JSON matrices as rows, cols and data without OpenCV's type_id; vectors as 3 x 1 lists.
+    json.dumps({"camera_matrix": {"rows": 3, "cols": 3, "dt": "d", "data": K.ravel().tolist()},
+                "distortion_coefficients": {"rows": 1, "cols": 5, "data": DIST.tolist()},
+                "rvec": RVEC[:, None].tolist(), "tvec": TVEC[:, None].tolist()}),
+])
+def test_reads_what_people_write_by_hand(tmp_path, text):
+    path = tmp_path / "hand.yml"
+    path.write_text(text)
+    cam = read_camera(path)
+    pts = _points_in_front(cam)
+    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, DIST)
+    assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
+
+
 @pytest.mark.parametrize("text", [
     "rvec: [0.1, -0.2, 0.3]\ntvec: [0.0, 0.1, 2.5]\nf: 1200\nw: 1920\nh: 1080\n",
     json.dumps({"rvec": [0.1, -0.2, 0.3], "tvec": [0.0, 0.1, 2.5], "f": 1200, "w": 1920, "h": 1080}),
@@ -145,6 +168,12 @@ def test_the_short_form(tmp_path, text):
     ("camera_matrix: [1000, 0, 320, 0, 1000, 240, 0, 0]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n", "has 8 numbers"),
     ("rvec: [0, 0, nan]\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\n", "not a list of numbers"),
     ("this is not a camera\n", "expected 'key: value'"),
+    ("rvec:\n  - - 0.1\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\n", "line 2: rvec: a list's item"),
+    ("rvec:\n  - 0.1\n  - x\n  - 0.3\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\n", "rvec: 'x' is not a finite number"),
+    ('{"camera_matrix": {"rows": 3, "data": [1, 0, 0, 0, 1, 0, 0, 0, 1]}, "rvec": [0, 0, 0], "tvec": [0, 0, 1]}',
+     r"camera_matrix: a mapping of \['data', 'rows'\]"),
+    ('{"camera_matrix": {"rows": 3, "cols": 3, "data": [1, 0, 0, 0, 1, 0]}, "rvec": [0, 0, 0], "tvec": [0, 0, 1]}',
+     "6 numbers in data for a 3 x 3 matrix"),
     ('{"rvec": [0, 0, 0], ', "not valid JSON"),
 ])
 def test_a_camera_file_that_does_not_parse_names_the_problem(tmp_path, text, message):

@@ -21,7 +21,9 @@ Camera files (:func:`read_camera`), one camera per file, in one of three forms:
 
 - OpenCV's FileStorage, YAML (``%YAML:1.0``, matrices as ``!!opencv-matrix`` with
   ``rows``, ``cols``, ``dt``, ``data``) or JSON (matrices as objects with
-  ``"type_id": "opencv-matrix"``, or plain nested lists): ``camera_matrix``,
+  ``"type_id": "opencv-matrix"``), or by hand (a matrix as ``rows``, ``cols`` and
+  ``data`` without the tag, as nested lists, or as a YAML block list of ``- x`` lines):
+  ``camera_matrix``,
   ``distortion_coefficients`` (4 or 5 numbers k1 k2 p1 p2 [k3]; longer vectors of OpenCV's
   rational and thin-prism models are accepted only where their extra terms are zero),
   ``rvec`` and ``tvec`` (the world-to-camera pose, as ``solvePnP`` gives it), and
@@ -342,9 +344,13 @@ def _camera_from(entries: dict, name: str) -> Camera:
 
 
 def _matrix(value, key):
-    """An ``opencv-matrix`` entry (YAML's ``!!opencv-matrix`` or JSON's ``type_id``) as a
-    flat list of its data, checked against its rows and columns; other values unchanged."""
-    if isinstance(value, dict) and (value.get("type_id") == "opencv-matrix" or value.get("!!") == "opencv-matrix"):
+    """An ``opencv-matrix`` entry (YAML's ``!!opencv-matrix``, JSON's ``type_id``, or an
+    untagged mapping of ``rows``, ``cols`` and ``data``) as a flat list of its data, checked
+    against its rows and columns; other values unchanged."""
+    if not isinstance(value, dict):
+        return value
+    tag = value.get("type_id", value.get("!!"))
+    if tag == "opencv-matrix" or (tag is None and {"rows", "cols", "data"} <= set(value)):
         try:
             rows, cols, data = int(value["rows"]), int(value["cols"]), value["data"]
         except (KeyError, TypeError, ValueError):
@@ -357,6 +363,9 @@ def _matrix(value, key):
 
 
 def _numbers(value, key) -> list[float]:
+    if isinstance(value, dict):
+        raise CameraError(f"{key}: a mapping of {sorted(value)}; a matrix is rows, cols and data "
+                          "(OpenCV's opencv-matrix), a vector a list of numbers")
     flat = np.asarray(value, dtype=object).reshape(-1).tolist() if isinstance(value, list) else [value]
     out = []
     for v in flat:
@@ -403,6 +412,9 @@ def _parse_yaml(text: str) -> dict:
         if rest.startswith("!!"):
             tag, _, rest = rest.partition(" ")
             tag, rest = tag[2:], rest.strip()
+        if rest == "" and not tag and _item(lines, i)[1] is not None:
+            target[key], i = _block_sequence(lines, i, key, indent)
+            continue
         if rest == "":
             child = {"!!": tag} if tag else {}
             target[key] = child
@@ -420,6 +432,32 @@ def _parse_yaml(text: str) -> dict:
         else:
             target[key] = _scalar_text(rest, key, i)
     return entries
+
+
+_ITEM = re.compile(r"^(\s*)-(?:\s+(.*))?$")
+
+
+def _item(lines: list[str], i: int):
+    """The first line from ``i`` that holds anything but a comment: its index and, where it
+    is a block list's item (``- value``), the match (else None)."""
+    while i < len(lines) and not lines[i].split("#", 1)[0].strip():
+        i += 1
+    return i, (_ITEM.match(lines[i].split("#", 1)[0].rstrip()) if i < len(lines) else None)
+
+
+def _block_sequence(lines: list[str], i: int, key: str, indent: int) -> tuple[list, int]:
+    """The items of a block list from line ``i`` (``- 1.2`` one a line, each a number or a
+    flow list ``[...]``), and the index of the line after it."""
+    items = []
+    while True:
+        at, m = _item(lines, i)
+        if m is None or len(m.group(1)) < indent:
+            return items, i
+        i = at + 1
+        text = (m.group(2) or "").strip()
+        if not text or text == "-" or text.startswith("- "):  # (empty, or a list in a list)
+            raise CameraError(f"line {i}: {key}: a list's item must be a number or [numbers] on its line")
+        items.append(_flow_sequence(text, key, i) if text.startswith("[") else _scalar_text(text, key, i))
 
 
 def _flow_sequence(text: str, key: str, line: int) -> list:
