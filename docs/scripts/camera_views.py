@@ -1,7 +1,7 @@
 """One camera, four views: synthetic table-tennis shots fitted from their pixels.
 
 Run from the repository root: ``python docs/scripts/camera_views.py [--shots N] [--json F]
-[--engine mujoco [--kind drive|serve|lob|chop]]``. Shots of a rally (:func:`draw_shot`)
+[--engine mujoco [--kind drive|serve|lob|chop] [--magnus C_M] [--angular-drag C]]``. Shots of a rally (:func:`draw_shot`)
 in estim's own 3-D physics (drag, Magnus, the friction law's bounce; spin drawn per
 shot), or with ``--engine mujoco`` in MuJoCo's (:func:`mujoco_shot`: its fluid model and
 soft frictional contact, the drag coefficient and restitution drawn per shot; the
@@ -55,6 +55,15 @@ VIEWS = {
 # Views added after the first runs draw their noise from streams of their own, so that the
 # other views' shots and noise stay those of the runs before them (docs/pages/cameras.md).
 OWN_STREAM = {"front": 1, "broadcast": 2}
+# MuJoCo's Magnus coefficient (``--magnus``), 1 by default as in MuJoCo. Its lift on a
+# table-tennis ball then is 1.6-1.9 times the textbook curve's that estim holds (Sawicki et
+# al., estim.model._air) at 100-600 rad/s and 5-14 m/s (measured from MuJoCo's passive
+# force with `mj_forward`); at 0.76 it is 0.84-0.98 of that curve's at spin ratios
+# 0.4-0.9 (f_L kappa = 8 (C_M - 1/2) / 3 = 0.69: estim.model._air's docstring).
+MAGNUS = 1.0
+# MuJoCo's angular drag coefficient (its third fluidcoef, ``--angular-drag``), 1.5 by
+# default as in MuJoCo: it halves a table-tennis ball's 300 rad/s in 0.25 s of flight.
+ANGULAR_DRAG = 1.5
 
 
 def draw_shot(rng, scene, t) -> tuple[dict, np.ndarray]:
@@ -83,11 +92,13 @@ def draw_shot(rng, scene, t) -> tuple[dict, np.ndarray]:
 
 
 def mujoco_shot(position, velocity, spin, t, *, blunt_drag: float = 0.5, damping: float = 0.1,
-                friction: float = 0.2) -> tuple[np.ndarray, float | None]:
+                friction: float = 0.2, magnus: float = MAGNUS,
+                angular_drag: float = ANGULAR_DRAG) -> tuple[np.ndarray, float | None]:
     """A shot in MuJoCo's own physics: the table-tennis scene with the ball's ellipsoid
     fluid model (``fluidshape="ellipsoid"``: drag, Magnus and added mass, and an angular
     drag that slows the spin; ``blunt_drag`` its first ``fluidcoef``, ``C_blunt rho A |v| v``,
-    so C_D = 2 C_blunt in estim's terms) and a soft frictional contact with the table
+    so C_D = 2 C_blunt in estim's terms, ``angular_drag`` its third, ``magnus`` its fifth,
+    the Magnus coefficient C_M) and a soft frictional contact with the table
     (``condim="6"``, ``friction``, elliptic cone, impratio 100, ``solref="0.0005
     damping"``), stepped at 20 us from the release state (the free joint's angular velocity
     is in the body's frame, the world's at release). Returns the positions at the times
@@ -96,7 +107,7 @@ def mujoco_shot(position, velocity, spin, t, *, blunt_drag: float = 0.5, damping
     contact = f'condim="6" friction="{friction} 0 0" solref="0.0005 {damping}"'
     xml = open(SCENE).read().replace('timestep="0.0005"', 'timestep="2e-5" cone="elliptic" impratio="100"')
     xml = xml.replace('shellinertia="true"', f'shellinertia="true" fluidshape="ellipsoid" '
-                                              f'fluidcoef="{blunt_drag} 0.25 1.5 1.0 1.0" {contact}')
+                                              f'fluidcoef="{blunt_drag} 0.25 {angular_drag} 1.0 {magnus}" {contact}')
     xml = xml.replace('<geom name="table" type="box"', f'<geom name="table" type="box" {contact}')
     model = mujoco.MjModel.from_xml_string(xml)
     table = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "table")
@@ -119,7 +130,7 @@ def mujoco_shot(position, velocity, spin, t, *, blunt_drag: float = 0.5, damping
     return np.array(out), (None if after is None else -after / before)
 
 
-def draw_mujoco_shot(rng, t) -> tuple[dict, np.ndarray]:
+def draw_mujoco_shot(rng, t, magnus: float = MAGNUS, angular_drag: float = ANGULAR_DRAG) -> tuple[dict, np.ndarray]:
     """A shot as :func:`draw_shot` draws them, flown in MuJoCo (:func:`mujoco_shot`), with
     its drag coefficient (0.4-0.6, C_D = 2 C_blunt), friction (0.2-0.4) and contact
     damping drawn too; kept where the restitution its contact shows lies within 0.8-0.95
@@ -136,7 +147,8 @@ def draw_mujoco_shot(rng, t) -> tuple[dict, np.ndarray]:
             "spin": np.array([rng.uniform(-150.0, 100.0), rng.uniform(-20.0, 20.0), rng.uniform(-60.0, 60.0)]),
         }
         p, e = mujoco_shot(truth["position"], truth["velocity"], truth["spin"], fine,
-                           blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"], friction=truth["mu"])
+                           blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"], friction=truth["mu"],
+                           magnus=magnus, angular_drag=angular_drag)
         if e is None or not 0.8 < e < 0.95:
             continue
         truth["e"] = e
@@ -150,8 +162,8 @@ def draw_mujoco_shot(rng, t) -> tuple[dict, np.ndarray]:
 # Other kinds of shot (``--kind``, MuJoCo's physics): ranges of the release position (m),
 # velocity (m/s) and spin (rad/s) per component; a serve bounces on the server's half
 # first. Their spins are a real ball's, flown by MuJoCo's Magnus force, which at these
-# spins is 1.5 to 2.5 times a real ball's (a constant lift coefficient): a harder test of
-# the bend the start and the fit must follow than real shots are.
+# spins is 1.6 to 1.9 times the textbook curve's at MuJoCo's default (a constant lift
+# coefficient; ``MAGNUS``, ``--magnus``): a harder bend than real shots have.
 KINDS = {
     "drive": {"position": ((-0.5, 0.5), (-2.2, -1.5), (0.1, 0.5)), "velocity": ((-1.0, 1.0), (9.0, 16.0), (-0.5, 1.5)),
               "spin": ((-600.0, -200.0), (-50.0, 50.0), (-100.0, 100.0))},
@@ -164,7 +176,8 @@ KINDS = {
 }
 
 
-def draw_kind(rng, kind: str) -> tuple[dict, np.ndarray, np.ndarray]:
+def draw_kind(rng, kind: str, magnus: float = MAGNUS,
+              angular_drag: float = ANGULAR_DRAG) -> tuple[dict, np.ndarray, np.ndarray]:
     """A shot of ``kind`` (``KINDS``) flown by MuJoCo (:func:`mujoco_shot`, its drag
     coefficient, friction and contact damping drawn as :func:`draw_mujoco_shot` draws them),
     kept where its contact's restitution lies within 0.75-0.97, it clears the net by 0.2 m
@@ -172,14 +185,15 @@ def draw_kind(rng, kind: str) -> tuple[dict, np.ndarray, np.ndarray]:
     first, then on the far half; any other shot on the far half first); tracked at 25 fps
     from its release until the opponent's hit, 0.1 to 0.3 s after that bounce (or until it
     falls below the table's top). Returns the truth, the path and the frames' times."""
-    fine = np.arange(0.0, 1.5, 0.001)
+    fine = np.arange(0.0, 2.5, 0.001)
     spec = KINDS[kind]
     while True:
         truth = {k: np.array([rng.uniform(*r) for r in spec[k]]) for k in ("position", "velocity", "spin")}
         truth.update(drag_coefficient=float(rng.uniform(0.4, 0.6)), damping=float(rng.uniform(0.035, 0.055)),
                      mu=float(rng.uniform(0.2, 0.4)))
         p, e = mujoco_shot(truth["position"], truth["velocity"], truth["spin"], fine,
-                           blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"], friction=truth["mu"])
+                           blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"], friction=truth["mu"],
+                           magnus=magnus, angular_drag=angular_drag)
         if e is None or not 0.75 < e < 0.97:
             continue
         truth["e"] = e
@@ -237,7 +251,7 @@ def across(spin, velocity):
 
 
 def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, engine: str = "estim",
-        kind: str = "rally") -> list[dict]:
+        kind: str = "rally", magnus: float = MAGNUS, angular_drag: float = ANGULAR_DRAG) -> list[dict]:
     scene = estim.load_scene(SCENE)
     rng = np.random.default_rng(seed)
     own = {name: np.random.default_rng([seed, k]) for name, k in OWN_STREAM.items()}
@@ -245,11 +259,11 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, 
     for k in range(shots):
         t = np.arange(0.0, 0.6, 1.0 / FPS)
         if kind != "rally":
-            truth, path, t = draw_kind(rng, kind)
+            truth, path, t = draw_kind(rng, kind, magnus, angular_drag)
         elif engine == "estim":
             truth, path = draw_shot(rng, scene, t)
         else:
-            truth, path = draw_mujoco_shot(rng, t)
+            truth, path = draw_mujoco_shot(rng, t, magnus, angular_drag)
         for name in views:
             cam = VIEWS[name]
             # The same draws at every noise level: the shots' noise differs only in its size.
@@ -318,10 +332,17 @@ def main() -> None:
                         help="whose physics flies the shots (mujoco: the independent engine)")
     parser.add_argument("--kind", default="rally", choices=("rally", *KINDS),
                         help="the shots: a rally's (the default), or another kind in MuJoCo's physics (KINDS)")
+    parser.add_argument("--magnus", type=float, default=MAGNUS,
+                        help="MuJoCo's Magnus coefficient C_M (its fifth fluidcoef; at 1, MuJoCo's default, its lift is "
+                             "1.6-1.9 times the textbook curve estim holds, at 0.76 about that curve's: MAGNUS)")
+    parser.add_argument("--angular-drag", type=float, default=ANGULAR_DRAG,
+                        help="MuJoCo's angular drag coefficient (its third fluidcoef; 1.5, MuJoCo's default, halves "
+                             "300 rad/s in a quarter of a second: ANGULAR_DRAG)")
     args = parser.parse_args()
     if args.kind != "rally" and args.engine != "mujoco":
         parser.error("--kind other than rally flies its shots in MuJoCo: add --engine mujoco")
-    rows = run(args.shots, args.seed, tuple(args.views), args.noise, args.engine, args.kind)
+    rows = run(args.shots, args.seed, tuple(args.views), args.noise, args.engine, args.kind, args.magnus,
+               args.angular_drag)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)
