@@ -287,6 +287,10 @@ def test_a_second_path_that_fits_as_well_is_reported():
     assert _alternative(chosen, 10.0, [(rival(0.3), 10.0 + AMBIGUOUS)]) is None
     assert _alternative(chosen, 10.0, [(rival(0.5 * DEPTH_LIMIT), 10.5)]) is None
     assert _alternative(chosen, 10.0, [(rival(0.2), 11.9), (rival(0.4), 10.1)])["distance_m"] == pytest.approx(0.4)
+    assert "about as well (robust loss -1.50)" in _alternative(chosen, 10.0, [(rival(0.3), 8.5)])["note"]
+    # A doubted rival far below the chosen loss (``_choose`` set it aside): it explains the
+    # pixels better, and the note says so.
+    assert "better (robust loss -6.26) but was set aside" in _alternative(chosen, 10.0, [(rival(0.3), 3.74)])["note"]
 
 
 def test_of_paths_the_pixels_cannot_tell_apart_the_one_nearer_the_start_is_kept():

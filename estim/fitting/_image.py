@@ -494,10 +494,14 @@ def _alternative(bf, loss: float, others) -> dict | None:
     if not rivals:
         return None
     gap, distance, other = min(rivals, key=lambda r: r[0])
+    # (A rival more than AMBIGUOUS below was doubted, ``_choose``: the pixels favour it and
+    # the priors or the start read off them do not.)
+    how = (f"explains the pixels about as well (robust loss {gap:+.2f})" if gap > -AMBIGUOUS else
+           f"explains the pixels better (robust loss {gap:+.2f}) but was set aside, far from a prior or from "
+           "the start read off the pixels")
     return {"distance_m": distance, "loss_difference": gap, "values": dict(other.values),
             "note": f"a second path, {distance * 100:.0f} cm from this one on average (e = {other.values['e']:.3f}), "
-                    f"explains the pixels about as well (robust loss {gap:+.2f}): one camera cannot tell them "
-                    "apart; add a camera, or more frames"}
+                    f"{how}: one camera cannot tell them apart; add a camera, or more frames"}
 
 
 def _depth_report(bf, camera) -> dict:
