@@ -1,8 +1,8 @@
 """One camera, four views: synthetic table-tennis shots fitted from their pixels.
 
 Run from the repository root: ``python docs/scripts/camera_views.py [--shots N] [--json F]
-[--engine mujoco [--kind drive|serve|lob|chop] [--magnus C_M] [--angular-drag C]]``. Shots of a rally (:func:`draw_shot`)
-in estim's own 3-D physics (drag, Magnus, the friction law's bounce; spin drawn per
+[--engine mujoco [--kind drive|serve|lob|chop] [--magnus C_M] [--angular-drag C]]``.
+Shots of a rally (:func:`draw_shot`) in estim's own 3-D physics (drag, Magnus, the friction law's bounce; spin drawn per
 shot), or with ``--engine mujoco`` in MuJoCo's (:func:`mujoco_shot`: its fluid model and
 soft frictional contact, the drag coefficient and restitution drawn per shot; the
 independent engine, whose mismatch with estim's model stands in for a real ball's), or
@@ -185,7 +185,7 @@ def draw_kind(rng, kind: str, magnus: float = MAGNUS,
     first, then on the far half; any other shot on the far half first); tracked at 25 fps
     from its release until the opponent's hit, 0.1 to 0.3 s after that bounce (or until it
     falls below the table's top). Returns the truth, the path and the frames' times."""
-    fine = np.arange(0.0, 2.5, 0.001)
+    fine = np.arange(0.0, 2.5, 0.001)  # (with a spin that barely decays a chop flew past 1.5 s)
     spec = KINDS[kind]
     while True:
         truth = {k: np.array([rng.uniform(*r) for r in spec[k]]) for k in ("position", "velocity", "spin")}
