@@ -1,20 +1,21 @@
 """One camera, four views: synthetic table-tennis shots fitted from their pixels.
 
 Run from the repository root: ``python docs/scripts/camera_views.py [--shots N] [--json F]
-[--engine mujoco [--kind drive|serve|lob|chop] [--magnus C_M] [--angular-drag C]]``.
-Shots of a rally (:func:`draw_shot`) in estim's own 3-D physics (drag, Magnus, the friction law's bounce; spin drawn per
-shot), or with ``--engine mujoco`` in MuJoCo's (:func:`mujoco_shot`: its fluid model and
-soft frictional contact, the drag coefficient and restitution drawn per shot; the
-independent engine, whose mismatch with estim's model stands in for a real ball's), or
-with ``--kind`` drives, serves, lobs and chops in MuJoCo's (:data:`KINDS`), 25 fps, seen by one camera at a time (from the side, at an angle from a corner,
-far behind the end the ball leaves, far behind the end it comes at: "front", and as
-television films a rally: 10 m behind the end the ball leaves, 3.5 m up, through a long
-lens: "broadcast"), 2 px
-of Gaussian noise on every pixel (``--noise``). Each is fitted with
-``estim.fit_image`` and its defaults (what ``estim fit TRACK.csv --camera CAM.yaml --scene
-data/scenes/table_tennis.xml`` runs), and compared with the truth: the mean 3-D distance of
-the fitted path from the true one at the frames, e, and the spin across the flight (the
-part perpendicular to the release velocity, which the Magnus force and the bounce read).
+[--engine mujoco [--magnus C_M] [--angular-drag C]] [--kind drive|serve|lob|chop]``.
+Shots of a rally (:func:`draw_shot`) in estim's own 3-D physics (drag, Magnus, the
+friction law's bounce; spin drawn per shot), or with ``--engine mujoco`` in MuJoCo's
+(:func:`mujoco_shot`: its fluid model and soft frictional contact, the drag coefficient
+and restitution drawn per shot; the independent engine, whose mismatch with estim's model
+stands in for a real ball's), or with ``--kind`` drives, serves, lobs and chops
+(:data:`KINDS`) in either, 25 fps, seen by one camera at a time (from the side, at an
+angle from a corner, far behind the end the ball leaves, far behind the end it comes at:
+"front", and as television films a rally: 10 m behind the end the ball leaves, 3.5 m up,
+through a long lens: "broadcast"), 2 px of Gaussian noise on every pixel (``--noise``).
+Each is fitted with ``estim.fit_image`` and its defaults (what ``estim fit TRACK.csv
+--camera CAM.yaml --scene data/scenes/table_tennis.xml`` runs), and compared with the
+truth: the mean 3-D distance of the fitted path from the true one at the frames, e, and
+the spin across the flight (the part perpendicular to the release velocity, which the
+Magnus force and the bounce read).
 Next to each fit's error, the error the data allow (:func:`bound`): the Bayesian
 Cramer-Rao (van Trees) bound on the path from the pixels' Fisher information at the truth
 and the scene's priors, the same parameters free as the fit. Prints a Markdown table
@@ -159,7 +160,7 @@ def draw_mujoco_shot(rng, t, magnus: float = MAGNUS, angular_drag: float = ANGUL
             return truth, p[np.round(np.asarray(t) / 0.001).astype(int)]
 
 
-# Other kinds of shot (``--kind``, MuJoCo's physics): ranges of the release position (m),
+# Other kinds of shot (``--kind``, either engine's physics): ranges of the release position (m),
 # velocity (m/s) and spin (rad/s) per component; a serve bounces on the server's half
 # first. Their spins are a real ball's, flown by MuJoCo's Magnus force, which at these
 # spins is 1.6 to 1.9 times the textbook curve's at MuJoCo's default (a constant lift
@@ -176,27 +177,36 @@ KINDS = {
 }
 
 
-def draw_kind(rng, kind: str, magnus: float = MAGNUS,
-              angular_drag: float = ANGULAR_DRAG) -> tuple[dict, np.ndarray, np.ndarray]:
+def draw_kind(rng, kind: str, magnus: float = MAGNUS, angular_drag: float = ANGULAR_DRAG,
+              scene=None) -> tuple[dict, np.ndarray, np.ndarray]:
     """A shot of ``kind`` (``KINDS``) flown by MuJoCo (:func:`mujoco_shot`, its drag
-    coefficient, friction and contact damping drawn as :func:`draw_mujoco_shot` draws them),
-    kept where its contact's restitution lies within 0.75-0.97, it clears the net by 0.2 m
-    (its centre's height over the net) and bounces on the far half (a serve on its own half
-    first, then on the far half; any other shot on the far half first); tracked at 25 fps
+    coefficient, friction and contact damping drawn as :func:`draw_mujoco_shot` draws them,
+    kept where its contact's restitution lies within 0.75-0.97) or, given ``scene``, by
+    estim in that scene (e and mu drawn as :func:`draw_shot` draws them); kept where it
+    clears the net by 0.2 m (its centre's height over the net) and bounces on the far half
+    (a serve on its own half first, then on the far half; any other shot on the far half
+    first); tracked at 25 fps
     from its release until the opponent's hit, 0.1 to 0.3 s after that bounce (or until it
     falls below the table's top). Returns the truth, the path and the frames' times."""
     fine = np.arange(0.0, 2.5, 0.001)  # (with a spin that barely decays a chop flew past 1.5 s)
     spec = KINDS[kind]
     while True:
         truth = {k: np.array([rng.uniform(*r) for r in spec[k]]) for k in ("position", "velocity", "spin")}
-        truth.update(drag_coefficient=float(rng.uniform(0.4, 0.6)), damping=float(rng.uniform(0.035, 0.055)),
-                     mu=float(rng.uniform(0.2, 0.4)))
-        p, e = mujoco_shot(truth["position"], truth["velocity"], truth["spin"], fine,
-                           blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"], friction=truth["mu"],
-                           magnus=magnus, angular_drag=angular_drag)
-        if e is None or not 0.75 < e < 0.97:
-            continue
-        truth["e"] = e
+        if scene is None:
+            truth.update(drag_coefficient=float(rng.uniform(0.4, 0.6)), damping=float(rng.uniform(0.035, 0.055)),
+                         mu=float(rng.uniform(0.2, 0.4)))
+            p, e = mujoco_shot(truth["position"], truth["velocity"], truth["spin"], fine,
+                               blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"],
+                               friction=truth["mu"], magnus=magnus, angular_drag=angular_drag)
+            if e is None or not 0.75 < e < 0.97:
+                continue
+            truth["e"] = e
+        else:
+            truth.update(e=float(rng.uniform(0.85, 0.92)), mu=float(rng.uniform(0.2, 0.4)))
+            params = estim.Params.for_ball(scene, "pingpong", e=truth["e"], mu_t=0.0, mu=truth["mu"],
+                                           position=truth["position"], velocity=truth["velocity"],
+                                           spin=truth["spin"])
+            p = np.asarray(estim.simulate(scene, params, float(fine[-1]), ts=fine).position)
         y, z = p[:, 1], p[:, 2]
         low = np.flatnonzero((z[1:-1] < z[:-2]) & (z[1:-1] <= z[2:]) & (np.abs(z[1:-1] - 0.02) < 3e-3)) + 1
         far = [i for i in low if 0.0 < y[i] < 1.37]
@@ -259,7 +269,7 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, 
     for k in range(shots):
         t = np.arange(0.0, 0.6, 1.0 / FPS)
         if kind != "rally":
-            truth, path, t = draw_kind(rng, kind, magnus, angular_drag)
+            truth, path, t = draw_kind(rng, kind, magnus, angular_drag, scene if engine == "estim" else None)
         elif engine == "estim":
             truth, path = draw_shot(rng, scene, t)
         else:
@@ -284,7 +294,7 @@ def run(shots: int, seed: int = 0, views=tuple(VIEWS), noise: float = NOISE_PX, 
                 "shot": k, "view": name, "kind": kind, "frames": int(t.size), "seconds": seconds,
                 "path_error_m": float(np.mean(np.linalg.norm(bf.model_position - path, axis=1))),
                 # (No bound for MuJoCo's shots: its pixels are not of estim's model.)
-                "bound_m": bound(scene, truth, t, cam, noise) if engine == "estim" and kind == "rally" else None,
+                "bound_m": bound(scene, truth, t, cam, noise) if engine == "estim" else None,
                 "e_error": abs(bf.values["e"] - truth["e"]), "e_signed": bf.values["e"] - truth["e"],
                 "spin_error": float(np.linalg.norm(across(spin, truth["velocity"]) - want) / np.linalg.norm(want)),
                 "rms_px": bf.rms_m, "converged": bf.converged, "at_noise_floor": bf.at_noise_floor,
@@ -331,7 +341,7 @@ def main() -> None:
     parser.add_argument("--engine", default="estim", choices=("estim", "mujoco"),
                         help="whose physics flies the shots (mujoco: the independent engine)")
     parser.add_argument("--kind", default="rally", choices=("rally", *KINDS),
-                        help="the shots: a rally's (the default), or another kind in MuJoCo's physics (KINDS)")
+                        help="the shots: a rally's (the default), or another kind (KINDS) in the engine's physics")
     parser.add_argument("--magnus", type=float, default=MAGNUS,
                         help="MuJoCo's Magnus coefficient C_M (its fifth fluidcoef; at 1, MuJoCo's default, its lift is "
                              "1.6-1.9 times the textbook curve estim holds, at 0.76 about that curve's: MAGNUS)")
@@ -339,8 +349,6 @@ def main() -> None:
                         help="MuJoCo's angular drag coefficient (its third fluidcoef; 1.5, MuJoCo's default, halves "
                              "300 rad/s in a quarter of a second: ANGULAR_DRAG)")
     args = parser.parse_args()
-    if args.kind != "rally" and args.engine != "mujoco":
-        parser.error("--kind other than rally flies its shots in MuJoCo: add --engine mujoco")
     rows = run(args.shots, args.seed, tuple(args.views), args.noise, args.engine, args.kind, args.magnus,
                args.angular_drag)
     if args.json:
