@@ -141,6 +141,30 @@ def test_reads_what_people_write_by_hand(tmp_path, text):
     assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
 
 
+def _ros_matrix(key, a) -> str:
+    a = np.atleast_2d(a)
+    return f"{key}:\n  rows: {a.shape[0]}\n  cols: {a.shape[1]}\n  data: {a.ravel().tolist()}\n"
+
+
+@pytest.mark.parametrize(("model", "distortion"), [("plumb_bob", DIST), ("rational_polynomial", [*DIST, 0, 0, 0])])
+def test_reads_a_ros_camera_info_with_the_pose_added(tmp_path, model, distortion):
+    """ROS's camera_info YAML as camera_calibration_parsers writes it (a rectified image's
+    rectification and projection matrices beside the raw image's K and distortion), with
+    rvec and tvec added: projected as OpenCV projects the raw image."""
+    P = np.hstack([K * 0.97, np.zeros((3, 1))])
+    P[2, 2] = 1.0
+    path = tmp_path / "ros.yaml"
+    path.write_text("image_width: 1920\nimage_height: 1080\ncamera_name: courtside\n" + _ros_matrix("camera_matrix", K)
+                    + f"distortion_model: {model}\n" + _ros_matrix("distortion_coefficients", distortion)
+                    + _ros_matrix("rectification_matrix", np.eye(3)) + _ros_matrix("projection_matrix", P)
+                    + f"rvec: {RVEC.tolist()}\ntvec: {TVEC.tolist()}\n")
+    cam = read_camera(path)
+    pts = _points_in_front(cam)
+    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, DIST)
+    assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
+    assert cam.size == (1920, 1080)
+
+
 @pytest.mark.parametrize("text", [
     "rvec: [0.1, -0.2, 0.3]\ntvec: [0.0, 0.1, 2.5]\nf: 1200\nw: 1920\nh: 1080\n",
     json.dumps({"rvec": [0.1, -0.2, 0.3], "tvec": [0.0, 0.1, 2.5], "f": 1200, "w": 1920, "h": 1080}),
@@ -175,6 +199,11 @@ def test_the_short_form(tmp_path, text):
     ('{"camera_matrix": {"rows": 3, "cols": 3, "data": [1, 0, 0, 0, 1, 0]}, "rvec": [0, 0, 0], "tvec": [0, 0, 1]}',
      "6 numbers in data for a 3 x 3 matrix"),
     ('{"rvec": [0, 0, 0], ', "not valid JSON"),
+    ("camera_matrix: [1000, 0, 320, 0, 1000, 240, 0, 0, 1]\ndistortion_model: equidistant\n"
+     "distortion_coefficients: [0.1, 0.01, 0, 0]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n",
+     "distortion_model 'equidistant': estim models OpenCV's pinhole distortion"),
+    ("rvec: [0, 0, 0]\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\ndistortion_model: plumb_bob\n",
+     "give one of the two"),
 ])
 def test_a_camera_file_that_does_not_parse_names_the_problem(tmp_path, text, message):
     path = tmp_path / "bad.yml"

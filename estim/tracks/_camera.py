@@ -27,7 +27,14 @@ Camera files (:func:`read_camera`), one camera per file, in one of three forms:
   ``distortion_coefficients`` (4 or 5 numbers k1 k2 p1 p2 [k3]; longer vectors of OpenCV's
   rational and thin-prism models are accepted only where their extra terms are zero),
   ``rvec`` and ``tvec`` (the world-to-camera pose, as ``solvePnP`` gives it), and
-  optionally ``image_width`` and ``image_height``;
+  optionally ``image_width`` and ``image_height``; ROS's ``camera_info`` YAML (the same
+  keys, with ``distortion_model``, ``rectification_matrix`` and ``projection_matrix``),
+  with the pose added: its ``distortion_model`` must be OpenCV's (``plumb_bob``, or
+  ``rational_polynomial`` with its extra terms zero), and its rectification and projection
+  matrices, which describe the rectified image, are read and not used (estim projects
+  into the image as it was filmed, through ``camera_matrix`` and the distortion: a track
+  taken on rectified images goes with a camera file of the projection matrix's K and no
+  distortion);
 - the short form, in YAML or JSON: ``rvec: [...]``, ``tvec: [...]``, ``f: ...`` (the focal
   length in pixels), ``w: ...`` and ``h: ...`` (the image size in pixels): principal point
   at the image centre ``((w - 1) / 2, (h - 1) / 2)`` in OpenCV's pixel-centre convention
@@ -61,6 +68,11 @@ _MATRIX_KEYS = ("camera_matrix",)
 _DISTORTION_KEYS = ("distortion_coefficients",)
 _SHORT_KEYS = ("rvec", "tvec", "f", "w", "h")
 _SIZE_KEYS = ("image_width", "image_height")
+# ROS's camera_info (sensor_msgs/CameraInfo as camera_calibration_parsers writes it): the
+# rectified image's matrices, read and not used, and the name of the distortion model.
+_RECTIFIED = ("rectification_matrix", "projection_matrix")
+_DISTORTION_MODEL = "distortion_model"
+_OPENCV_MODELS = ("plumb_bob", "rational_polynomial")
 # Written by OpenCV's calibration sample beside the camera; read and not used.
 _BOOKKEEPING = ("calibration_time", "calibration_date", "nframes", "nr_of_frames", "board_width", "board_height",
                 "board_size", "square_size", "marker_size", "aspect_ratio", "aspectRatio", "flags", "flagValue",
@@ -307,14 +319,15 @@ def read_camera(path: str | os.PathLike, *, name: str | None = None) -> Camera:
 
 def _camera_from(entries: dict, name: str) -> Camera:
     entries = {k: _matrix(v, k) for k, v in entries.items()}
-    known = _MATRIX_KEYS + _DISTORTION_KEYS + _SHORT_KEYS + _SIZE_KEYS + _BOOKKEEPING
+    known = _MATRIX_KEYS + _DISTORTION_KEYS + _SHORT_KEYS + _SIZE_KEYS + _RECTIFIED + (_DISTORTION_MODEL,) + _BOOKKEEPING
     unknown = [k for k in entries if k not in known]
     if unknown:
         raise CameraError(f"unknown entr{'y' if len(unknown) == 1 else 'ies'} {unknown}; a camera file has "
                           "camera_matrix, distortion_coefficients, rvec, tvec (and image_width, image_height), "
                           "or the short form rvec, tvec, f, w, h")
     short = [k for k in ("f", "w", "h") if k in entries]
-    full = [k for k in _MATRIX_KEYS + _DISTORTION_KEYS + _SIZE_KEYS if k in entries]
+    full = [k for k in _MATRIX_KEYS + _DISTORTION_KEYS + _SIZE_KEYS + _RECTIFIED + (_DISTORTION_MODEL,)
+            if k in entries]
     if short and full:
         raise CameraError(f"both the short form's {short} and OpenCV's {full}: give one of the two")
     missing = [k for k in (_SHORT_KEYS if short else _MATRIX_KEYS + ("rvec", "tvec")) if k not in entries]
@@ -322,7 +335,11 @@ def _camera_from(entries: dict, name: str) -> Camera:
         form = "the short form needs rvec, tvec, f, w and h" if short else \
             "OpenCV's form needs camera_matrix, rvec and tvec (distortion_coefficients optional)"
         raise CameraError(f"no {missing}: {form}")
-    vector = {k: _numbers(entries[k], k) for k in entries if k not in _BOOKKEEPING}
+    model = entries.get(_DISTORTION_MODEL, _OPENCV_MODELS[0])
+    if model not in _OPENCV_MODELS:
+        raise CameraError(f"distortion_model {model!r}: estim models OpenCV's pinhole distortion k1 k2 p1 p2 k3 "
+                          f"({' or '.join(_OPENCV_MODELS)}), not this one")
+    vector = {k: _numbers(entries[k], k) for k in entries if k not in _BOOKKEEPING + (_DISTORTION_MODEL,)}
     if short:
         f, w, h = (_scalar(vector[k], k) for k in ("f", "w", "h"))
         if not f > 0:
