@@ -194,7 +194,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
                         "(to fit the release time: free t0, --also t0; to give it: fixed t0)")
             say(f"{b}: {clock[b]}")
         t0_of[b] = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
-        recs_of[b], surfaces_of[b] = recs, _ = _starts(scene, tracks, b, t0_of[b])
+        recs, surfaces_of[b] = _starts(scene, tracks, b, t0_of[b])
+        recs_of[b] = recs
         say(f"{b}: {len(recs)} start(s) in 3-D from {len(tracks.cameras)} camera(s): {len(recs[0].bounces)} "
             f"bounce(s), rays missed by {recs[0].ray_rms * 1e3:.2f} mrad rms")
     free = registry.expand(default_image_free(scene, len(tracks.cameras)) if free is None else free)
@@ -241,8 +242,9 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
 
 def _starts(scene: Scene, tracks: ImageTracks, ball: str, t0: float) -> tuple[list, set]:
     """The start paths of ``ball`` read off its pixels through the physics
-    (``reconstructions``), each moved out of the solids, with a second one ``FARTHER`` along the rays where the
-    bounces fit one surface only; and the solids the starts bounce on (``_bounced_on``)."""
+    (``reconstructions``), each moved out of the solids, with a second one ``FARTHER``
+    along the rays where the bounces fit one surface only; and the solids the starts
+    bounce on (``_bounced_on``)."""
     try:
         recs = reconstructions(tracks, ball, scene, alternatives=STARTS)
     except ValueError as err:
