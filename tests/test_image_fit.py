@@ -174,34 +174,6 @@ def _mujoco_shot_fit(view, seed, position, velocity, spin, t_end=0.6, frames=sli
     return fit_image(estim.load_scene(camera_views.SCENE), tracks).balls["pingpong"], path, e
 
 
-def test_two_wild_rows_are_read_past_and_the_noise_read_again():
-    """Two detections 40 px off the ball (rows 4 and 9 of 15, 25 fps, 2 px of noise, a
-    rally shot of estim's own physics seen at an angle) spoil eight of the twelve
-    third-difference windows: the noise reads 8.5 px, and the fit at that level, its
-    robust scale and its priors' weight set by it, lay 8.5 cm off (10-14 cm for three other
-    noise draws; the same track without them 2.0 cm). The rows the fit misses by more than
-    ``WILD`` noise levels are left out of a second reading, which finds the 2 px added
-    (1-3 px), and the fit at it is the clean track's (docs/pages/cameras.md, "Frames lost")."""
-    sys.path.insert(0, str(ROOT / "docs" / "scripts"))
-    import camera_views
-
-    scene = estim.load_scene(camera_views.SCENE)
-    params = estim.Params.for_ball(scene, "pingpong", e=0.856, mu_t=0.0, mu=0.223, position=np.array([0.001, -1.6, 0.248]),
-                                   velocity=np.array([-0.204, 5.548, 1.203]), spin=np.array([66.333, -9.96, 28.019]))
-    t = np.arange(0.0, 0.6, 1 / camera_views.FPS)
-    path = np.asarray(estim.simulate(scene, params, float(t[-1]), ts=t).position)
-    cam = camera_views.VIEWS["angle"]
-    uv = np.asarray(cam.project(path)) + 2.0 * np.random.default_rng(0).normal(size=(t.size, 2))
-    uv[[4, 9]] += [[28.0, 28.0], [-28.0, 28.0]]
-    tracks = ImageTracks("angle", ("pingpong",), (cam,), {"pingpong": t}, {"pingpong": uv},
-                         {"pingpong": np.zeros(t.size, np.int64)})
-    assert tracks.noise("pingpong") > 6.0
-    bf = fit_image(scene, tracks).balls["pingpong"]
-    assert 1.0 < bf.noise_m < 3.0
-    assert any(n.startswith("2 row(s) (t = 0.160, 0.360 s)") for n in bf.notes)
-    assert np.mean(np.linalg.norm(bf.model_position - path, axis=1)) < 0.04
-
-
 @pytest.mark.parametrize("seed", [3, 5])
 def test_a_start_read_below_the_table_is_lifted_out_of_it(seed):
     """Seen from far behind, the start read off the pixels has its release below the
