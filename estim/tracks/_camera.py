@@ -73,6 +73,7 @@ _SIZE_KEYS = ("image_width", "image_height")
 _RECTIFIED = ("rectification_matrix", "projection_matrix")
 _DISTORTION_MODEL = "distortion_model"
 _OPENCV_MODELS = ("plumb_bob", "rational_polynomial")
+_ROS_KEYS = _RECTIFIED + (_DISTORTION_MODEL,)
 # Written by OpenCV's calibration sample beside the camera; read and not used.
 _BOOKKEEPING = ("calibration_time", "calibration_date", "nframes", "nr_of_frames", "board_width", "board_height",
                 "board_size", "square_size", "marker_size", "aspect_ratio", "aspectRatio", "flags", "flagValue",
@@ -319,15 +320,14 @@ def read_camera(path: str | os.PathLike, *, name: str | None = None) -> Camera:
 
 def _camera_from(entries: dict, name: str) -> Camera:
     entries = {k: _matrix(v, k) for k, v in entries.items()}
-    known = _MATRIX_KEYS + _DISTORTION_KEYS + _SHORT_KEYS + _SIZE_KEYS + _RECTIFIED + (_DISTORTION_MODEL,) + _BOOKKEEPING
+    known = _MATRIX_KEYS + _DISTORTION_KEYS + _SHORT_KEYS + _SIZE_KEYS + _ROS_KEYS + _BOOKKEEPING
     unknown = [k for k in entries if k not in known]
     if unknown:
         raise CameraError(f"unknown entr{'y' if len(unknown) == 1 else 'ies'} {unknown}; a camera file has "
                           "camera_matrix, distortion_coefficients, rvec, tvec (and image_width, image_height), "
                           "or the short form rvec, tvec, f, w, h")
     short = [k for k in ("f", "w", "h") if k in entries]
-    full = [k for k in _MATRIX_KEYS + _DISTORTION_KEYS + _SIZE_KEYS + _RECTIFIED + (_DISTORTION_MODEL,)
-            if k in entries]
+    full = [k for k in _MATRIX_KEYS + _DISTORTION_KEYS + _SIZE_KEYS + _ROS_KEYS if k in entries]
     if short and full:
         raise CameraError(f"both the short form's {short} and OpenCV's {full}: give one of the two")
     missing = [k for k in (_SHORT_KEYS if short else _MATRIX_KEYS + ("rvec", "tvec")) if k not in entries]
