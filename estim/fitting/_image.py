@@ -31,6 +31,10 @@ is the model at ``t + dt_camerak``).
    every start runs once more through a graduated robust scale (``GRADUATED``: at 20 px,
    then at the pixels' noise), kept where it ends lower: at the noise of a clean track a
    start's misses of a few pixels had led to paths that explain part of the samples.
+   Where the chosen fit misses some rows by more than ``WILD`` noise levels (wild
+   detections, which inflate the noise read from third differences) and the noise read
+   without them (no lower than the fit's misses of the other rows) is more than
+   ``REREAD`` times lower, every start runs again at it, read without those rows.
 3. **Depth.** Depth (along a camera's axis) is the direction the pixels fix worst. From the
    fit's covariance, each ball's report gives the standard error of the release point
    along the first camera's axis and across it (``BallFit.depth``), and a note where the
@@ -113,6 +117,19 @@ MISFIT = 1.0
 # bouncing on the floor, 2.6 m off, at a loss above the truth's).
 DRIFT = 1.0
 DEEPER = ((1.25, 0.8), (1.25**2, 0.8**2))
+# Wild rows (a detection far off the ball) spoil the noise level read from the pixels'
+# third differences: two rows 40 px off in 15 frames read 2 px as 3-11 px (each spoils
+# four of the twelve windows), and the robust scale and the priors' weight follow that
+# level (docs/pages/cameras.md, "Frames lost"). Rows the chosen fit misses by more than
+# WILD noise levels are left out of a second reading, floored at the rms of the fit's
+# misses of the other rows (``_wild_rows``); where it is more than REREAD times lower,
+# every start runs again at it, from starts read without those rows (the rows stay in the
+# fit, under the robust loss). No clean track of the studies that set these (86) was read
+# again; a 10-frame MuJoCo drive whose first reading was low (0.87 px for 2) was, before
+# the floor (0.3 px: 5.6 -> 12.9 cm off); starts read with the rows took a fit 1.8 cm off
+# to 2.7 m.
+WILD = 3.0
+REREAD = 1.5
 # A start's first flight may touch its bounce's surface this long before the bounce (s),
 # whose time is read off the pixels (``_flies_through``).
 NEAR_BOUNCE = 0.01
@@ -179,44 +196,39 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
             clock[b] = (f"the track's clock starts at t = {first:.3f} s: the release is taken at its first row "
                         "(to fit the release time: free t0, --also t0; to give it: fixed t0)")
             say(f"{b}: {clock[b]}")
-        t0 = t0_of[b] = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
-        try:
-            recs = reconstructions(tracks, b, scene, alternatives=STARTS)
-        except ValueError as err:
-            raise ValueError(f"ball {b!r}: {err}") from None
-        surfaces_of[b] = _bounced_on(scene, b, recs)  # (before a start is moved off its surface)
-        recs = [_released_outside(_inside_out(rec, scene, b, tracks), scene, b, tracks, t0) for rec in recs]
-        if len(recs) < STARTS:
-            farther = recs[0].scaled(FARTHER, tracks.cameras[0].centre)
-            if not _released_inside(farther, scene, b, t0):
-                recs.append(farther)
+        t0_of[b] = float(given.get(b, {}).get("t0", 0.0))  # the release the starts are read at
+        recs, surfaces_of[b] = _starts(scene, tracks, b, t0_of[b])
         recs_of[b] = recs
         say(f"{b}: {len(recs)} start(s) in 3-D from {len(tracks.cameras)} camera(s): {len(recs[0].bounces)} "
             f"bounce(s), rays missed by {recs[0].ray_rms * 1e3:.2f} mrad rms")
     free = registry.expand(default_image_free(scene, len(tracks.cameras)) if free is None else free)
     options = dict(free=free, loss=loss, steps=steps, restarts=restarts, max_segments=max_segments,
                    progress=progress, prior=prior)
-    fits = _fit_starts(scene, tracks, recs_of, t0_of, surfaces_of, given, 0, **options)
-    for stage, factors in enumerate(DEEPER, 1):
-        # First where any start's fit is doubted (the others may have run off as well, to
-        # paths the priors cannot tell), then where the best one still is.
-        doubted = [b for b in tracks.balls if any(_doubted(f, recs_of[b][0]) for f in _of(fits, b)) if stage == 1
-                   or _doubted(min(_of(fits, b), key=lambda f: f[1]), recs_of[b][0])]
-        moved = {b: [r for r in (recs_of[b][0].released_at(f, tracks.cameras[0].centre) for f in factors)
-                     if not _released_inside(r, scene, b, t0_of[b])] for b in doubted}
-        moved = {b: recs for b, recs in moved.items() if recs}
-        if not moved:
-            break
-        say(f"{', '.join(moved)}: a fit doubted (a prior more than {DOUBT:g} sd off, a robust loss above "
-            f"{MISFIT:g} per pixel coordinate, a path {DRIFT:g} m from the start, or no path the cameras could "
-            f"have seen); starts moved by {' and '.join(f'{f:.2f}' for f in factors)} "
-            "along the rays")
-        fits.update(_fit_starts(scene, tracks, moved, t0_of, surfaces_of, given, stage * STARTS, **options))
-    chosen = {b: _choose(_of(fits, b), recs_of[b][0]) for b in tracks.balls}
+    noise_of = {b: tracks.noise(b) for b in tracks.balls}
+    fits, chosen = _solve(scene, tracks, recs_of, t0_of, surfaces_of, given, noise_of, say, options)
+    wild = {b: _wild_rows(tracks, b, chosen[b][0], noise_of[b]) for b in tracks.balls}
+    reread = {b: level for b, (rows, level) in wild.items() if rows.size and level * REREAD < noise_of[b]}
+    if reread:
+        say(f"{', '.join(reread)}: rows missed by more than {WILD:g} noise levels; the noise read without them "
+            f"({', '.join(f'{v:.2f} px' for v in reread.values())}) is more than {REREAD:g} times lower: fitting again "
+            "at it, from starts read without them")
+        cleared = {b: _starts(scene, _without(tracks, b, wild[b][0]), b, t0_of[b]) for b in reread}
+        again, chosen_again = _solve(scene, tracks, {b: recs for b, (recs, _) in cleared.items()}, t0_of,
+                                     {**surfaces_of, **{b: s for b, (_, s) in cleared.items()}}, given,
+                                     {**noise_of, **reread}, say, options)
+        fits = {**{k: f for k, f in fits.items() if f[3] not in reread}, **again}
+        chosen.update(chosen_again)
     result = FitResult({b: fit[0] for b, fit in chosen.items()})
     for b, bf in result.balls.items():
         if b in clock:
             bf.notes.insert(0, clock[b])
+        if b in reread:
+            rows, _ = wild[b]
+            bf.notes.append(f"{rows.size} row(s) (t = {', '.join(f'{t:.3f}' for t in tracks.t[b][rows])} s) missed by "
+                            f"more than {WILD:g} times the noise read from every row ({noise_of[b]:.2f} px): read "
+                            f"without them (and no lower than the fit's misses of the other rows), "
+                            f"{reread[b]:.2f} px, at which the fit ran again from starts read without them (they "
+                            "stay in the fit, under the robust loss): wild detections?")
         if effects:
             attach_effects(scene, bf, chosen[b][2])
         bf.ball = b
@@ -234,12 +246,86 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     return result
 
 
+def _starts(scene: Scene, tracks: ImageTracks, ball: str, t0: float) -> tuple[list, set]:
+    """The start paths of ``ball`` read off its pixels through the physics
+    (``reconstructions``), each moved out of the solids, with a second one ``FARTHER``
+    along the rays where the bounces fit one surface only; and the solids the starts
+    bounce on (``_bounced_on``)."""
+    try:
+        recs = reconstructions(tracks, ball, scene, alternatives=STARTS)
+    except ValueError as err:
+        raise ValueError(f"ball {ball!r}: {err}") from None
+    surfaces = _bounced_on(scene, ball, recs)  # (before a start is moved off its surface)
+    recs = [_released_outside(_inside_out(rec, scene, ball, tracks), scene, ball, tracks, t0) for rec in recs]
+    if len(recs) < STARTS:
+        farther = recs[0].scaled(FARTHER, tracks.cameras[0].centre)
+        if not _released_inside(farther, scene, ball, t0):
+            recs.append(farther)
+    return recs, surfaces
+
+
+def _solve(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, surfaces_of: dict, given: dict,
+           noise_of: dict, say, options: dict) -> tuple[dict, dict]:
+    """The fits of the balls of ``recs_of`` from their starts, and the starts moved along
+    the rays where a fit is doubted (``DEEPER``), at the noise levels ``noise_of``: every
+    start's ``(fit, loss, problem, ball)`` by key, and each ball's chosen one (``_choose``)."""
+    fits = _fit_starts(scene, tracks, recs_of, t0_of, surfaces_of, given, 0, noise_of=noise_of, **options)
+    for stage, factors in enumerate(DEEPER, 1):
+        # First where any start's fit is doubted (the others may have run off as well, to
+        # paths the priors cannot tell), then where the best one still is.
+        doubted = [b for b in recs_of if any(_doubted(f, recs_of[b][0]) for f in _of(fits, b)) if stage == 1
+                   or _doubted(min(_of(fits, b), key=lambda f: f[1]), recs_of[b][0])]
+        moved = {b: [r for r in (recs_of[b][0].released_at(f, tracks.cameras[0].centre) for f in factors)
+                     if not _released_inside(r, scene, b, t0_of[b])] for b in doubted}
+        moved = {b: recs for b, recs in moved.items() if recs}
+        if not moved:
+            break
+        say(f"{', '.join(moved)}: a fit doubted (a prior more than {DOUBT:g} sd off, a robust loss above "
+            f"{MISFIT:g} per pixel coordinate, a path {DRIFT:g} m from the start, or no path the cameras could "
+            f"have seen); starts moved by {' and '.join(f'{f:.2f}' for f in factors)} "
+            "along the rays")
+        fits.update(_fit_starts(scene, tracks, moved, t0_of, surfaces_of, given, stage * STARTS,
+                                noise_of=noise_of, **options))
+    chosen = {b: _choose(_of(fits, b), recs_of[b][0]) for b in recs_of}
+    return fits, chosen
+
+
+def _wild_rows(tracks: ImageTracks, ball: str, bf, noise: float) -> tuple[np.ndarray, float]:
+    """The rows of ``ball`` that the fit ``bf`` misses by more than ``WILD`` noise levels
+    (the length of the pixel residual), and the noise level read without them (NaN where
+    there are none), no lower than the rms of the fit's misses of the other rows: a fit of
+    p parameters to n pixel coordinates leaves misses of rms sigma sqrt((n - p) / n) where
+    its model holds, more where it does not, so that rms is a floor for sigma; third
+    differences read on a few rows after the largest misses are taken out can fall below
+    it (a 10-frame MuJoCo drive read 0.87 px, then 0.3 px, its fit missing the other rows
+    by 0.95 px rms: 2 px were added)."""
+    r = np.asarray(bf.residuals, dtype=np.float64)
+    miss = np.linalg.norm(r, axis=1)
+    rows = np.flatnonzero(np.isfinite(miss) & (miss > WILD * noise))
+    if not rows.size:
+        return rows, float("nan")
+    kept = _without(tracks, ball, rows)
+    others = np.isfinite(miss)
+    others[rows] = False
+    floor = float(np.sqrt(np.mean(r[others] ** 2))) if others.any() else float("nan")
+    return rows, float(np.maximum(kept.noise(ball), floor))
+
+
+def _without(tracks: ImageTracks, ball: str, rows) -> ImageTracks:
+    """``ball``'s track alone, its ``rows`` read as missed detections (NaN)."""
+    uv = tracks.uv[ball].copy()
+    uv[rows] = np.nan
+    return ImageTracks(tracks.source, (ball,), tracks.cameras, {ball: tracks.t[ball]}, {ball: uv},
+                       {ball: tracks.view[ball]})
+
+
 def _fit_starts(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, surfaces_of: dict, given: dict,
-                first: int, free, **options) -> dict[str, tuple]:
+                first: int, free, noise_of: dict, **options) -> dict[str, tuple]:
     """Fit each ball from its start paths ``recs_of[ball]`` side by side (``_fit_all``),
     always ``STARTS`` of them per ball (the last repeated where there are fewer: every shot
     of a given length then runs the same compiled program), under the keys ``_key(ball,
-    first + j)``. Returns each key's ``(fit, _loss, problem, ball)``."""
+    first + j)``, at the pixels' noise level ``noise_of[ball]``. Returns each key's
+    ``(fit, _loss, problem, ball)``."""
     data, images, ball_of, starts = {}, {}, {}, {}
     arrays = CameraArrays.of(tracks.cameras)
     for b, recs in recs_of.items():
@@ -251,7 +337,7 @@ def _fit_starts(scene: Scene, tracks: ImageTracks, recs_of: dict, t0_of: dict, s
             data[key] = (t, rec.position[ok][at])
             starts[key] = start_values(rec, scene, b, t0_of[b])
             images[key] = ImageRows(t=tracks.t[b], uv=tracks.uv[b], view=tracks.view[b], cameras=arrays,
-                                    noise=tracks.noise(b), initial=_initial(rec, starts[key]))
+                                    noise=noise_of[b], initial=_initial(rec, starts[key]))
             ball_of[key] = b
     # The path's own starts for the fitted parameters (fixed values double as starts);
     # what the caller holds or gives wins.
