@@ -33,10 +33,9 @@ is the model at ``t + dt_camerak``).
    start's misses of a few pixels had led to paths that explain part of the samples.
    Where the chosen fit misses some rows by more than ``WILD`` noise levels or ``APART``
    times its misses of the others (wild detections, which inflate the noise read from
-   third differences) and the noise read
-   without them (no lower than the fit's misses of the other rows) is more than
-   ``REREAD`` times lower, every start runs again at it, read without those rows; and
-   so on from the new fit (``REREADS`` times at most).
+   third differences) and the noise read without them (no lower than the fit's misses of
+   the other rows) is more than ``REREAD`` times lower, every start runs again at it,
+   read without those rows; and so on from the new fit (``REREADS`` times at most).
 3. **Depth.** Depth (along a camera's axis) is the direction the pixels fix worst. From the
    fit's covariance, each ball's report gives the standard error of the release point
    along the first camera's axis and across it (``BallFit.depth``), and a note where the
@@ -125,11 +124,10 @@ DEEPER = ((1.25, 0.8), (1.25**2, 0.8**2))
 # level (docs/pages/cameras.md, "Frames lost"). Rows the chosen fit misses by more than
 # WILD noise levels, or by more than APART times the rms of its misses of the other rows
 # (three wild rows read 2 px as 16-22 px), are left out of a second reading, floored at
-# that rms (``_wild_rows``); where it is more than REREAD times lower,
-# every start runs again at it, from starts read without those rows (the rows stay in
-# the fit, under the robust loss), and the new fit is read so again, REREADS times at
-# most (a third wild row may be missed by less than 3 of the first level and by more
-# than 3 of the second). No clean track of the studies that set these (76) was read
+# that rms (``_wild_rows``); where it is more than REREAD times lower, every start runs
+# again at it, from starts read without those rows (the rows stay in the fit, under the
+# robust loss), and the new fit is read so again, REREADS times at most (a third wild
+# row may be missed by less than 3 of the first level and by more than 3 of the second). No clean track of the studies that set these (76) was read
 # again; a 10-frame MuJoCo drive whose first reading was low (0.87 px for 2) was, before
 # the floor (0.3 px: 5.6 -> 12.9 cm off); starts read with the rows took a fit 1.8 cm
 # off to 2.7 m.
@@ -240,9 +238,9 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
             rows = wild_of[b]
             bf.notes.append(f"{rows.size} row(s) (t = {', '.join(f'{t:.3f}' for t in tracks.t[b][rows])} s) missed by "
                             f"more than {WILD:g} times the noise read from every row ({first[b]:.2f} px) or from "
-                            f"the rows left, or by {APART:g} times the rms of the other misses: read without them (and no lower than the fit's misses of the other "
-                            f"rows), {noise_of[b]:.2f} px, at which the fit ran again from starts read without them "
-                            "(they stay in the fit, under the robust loss): wild detections?")
+                            f"the rows left, or by {APART:g} times the rms of the other misses: read without them "
+                            f"(and no lower than that rms), {noise_of[b]:.2f} px, at which the fit ran again from "
+                            "starts read without them (they stay in the fit, under the robust loss): wild detections?")
         if effects:
             attach_effects(scene, bf, chosen[b][2])
         bf.ball = b
@@ -314,7 +312,7 @@ def _wild_rows(tracks: ImageTracks, ball: str, bf, noise: float) -> tuple[np.nda
     leaves misses of rms sigma sqrt((n - p) / n) where its model holds, more where it does
     not, so that rms is a floor for sigma; third differences read on a few rows after the
     largest misses are taken out can fall below it (a 10-frame MuJoCo drive read 0.87 px,
-    then 0.3 px, its fit missing the other rows by 0.95 px rms: 2 px were added)."""
+    then 0.3 px, its fit missing the other rows by 1.16 px rms: 2 px were added)."""
     r = np.asarray(bf.residuals, dtype=np.float64)[:, :2]  # (u, v; the third column is 0)
     miss = np.linalg.norm(r, axis=1)
     finite = np.isfinite(miss) & tracks.valid(ball)  # (a row without a detection has no miss)
