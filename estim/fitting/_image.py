@@ -213,8 +213,9 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
     noise_of = dict(first)
     fits, chosen = _solve(scene, tracks, recs_of, t0_of, surfaces_of, given, noise_of, say, options)
     wild_of = {}  # the rows of each ball read past, at its last reading
+    reread = tracks.balls  # (a ball not read again keeps its fit and level: nothing new to read)
     for _ in range(REREADS):
-        wild = {b: _wild_rows(tracks, b, chosen[b][0], noise_of[b]) for b in tracks.balls}
+        wild = {b: _wild_rows(tracks, b, chosen[b][0], noise_of[b]) for b in reread}
         reread = {b: level for b, (rows, level) in wild.items() if rows.size and level * REREAD < noise_of[b]}
         if not reread:
             break
