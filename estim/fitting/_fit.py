@@ -533,7 +533,7 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
     if bad:
         raise ValueError(f"unknown parameter(s) {bad}; a fit can estimate {PARAMETERS}")
     ball_of = {b: (balls or {}).get(b, b) for b in data} if isinstance(data, dict) else {}
-    _check_inputs(scene, data, fixed or {}, ball_of, MIN_ROWS if images else MIN_SAMPLES)
+    _check_inputs(scene, data, fixed or {}, ball_of, MIN_ROWS if images else MIN_SAMPLES, units=images is None)
     say = progress or (lambda msg: None)
     names = list(data)
     lateral = any(np.isfinite(np.asarray(data[b][1])[:, 1]).any() for b in names)
@@ -819,10 +819,13 @@ def _check_release_time(data, fixed) -> None:
             )
 
 
-def _check_inputs(scene, data, fixed, ball_of=None, min_samples: int = MIN_SAMPLES) -> None:
+def _check_inputs(scene, data, fixed, ball_of=None, min_samples: int = MIN_SAMPLES, units: bool = True) -> None:
     """Reject data and fixed values that fit cannot use, naming the ball and the problem:
     nothing is dropped, clipped, reordered or rescaled silently. NaN in a position is a lost
-    detection (masked); anything else must be finite."""
+    detection (masked); anything else must be finite. ``units``: check that each track falls
+    with the scene's gravity (``check_units``); not for a start read from pixels, which is
+    in metres by the cameras' calibration and whose parabolas may span a contact the start
+    did not find (a ball clipping the net), which no unit explains."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be an estim.Scene (estim.load_scene), got {type(scene).__name__}")
     if not isinstance(data, dict):
@@ -867,7 +870,8 @@ def _check_inputs(scene, data, fixed, ball_of=None, min_samples: int = MIN_SAMPL
         if n < min_samples:
             raise ValueError(f"ball {b!r}: only {n} samples with x and z; a fit needs at least "
                              f"{min_samples}")
-        check_units(t, pos[:, 2], g, where=f"ball {b!r}")
+        if units:
+            check_units(t, pos[:, 2], g, where=f"ball {b!r}")
     if not isinstance(fixed, dict):
         raise TypeError(f"fixed must be a dict ball -> {{parameter: value}}, got {type(fixed).__name__}")
     for b, values in fixed.items():
