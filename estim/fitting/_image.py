@@ -56,7 +56,7 @@ from ..model._params import DRAG_COEFFICIENT
 from ..model._scene import Scene
 from ..tracks._camera import CameraArrays
 from ..tracks._image import MIN_ROWS, ImageTracks
-from ..tracks._reconstruct import NARROW, reconstructions
+from ..tracks._reconstruct import EDGE, NARROW, reconstructions
 from . import _registry as registry
 from ._fit import FitResult, ImageRows, _fit_all, attach_effects
 from ._initial import E_DEFAULT, FRICTION_DEFAULT, MU_DEFAULT, Initial
@@ -413,9 +413,9 @@ def _doubted(fit: tuple, start) -> bool:
 
 def _bounced_on(scene: Scene, ball: str, recs) -> frozenset[str]:
     """The names of the solids that the bounces of the start paths ``recs`` touch (their
-    bounce points within half a radius of the surface, as :func:`_flies_through` reads them)."""
+    bounce points within ``EDGE`` radii of the surface, as :func:`_flies_through` reads them)."""
     points = np.concatenate([rec.bounce_points.reshape(-1, 3) for rec in recs])
-    box, plane = inside(np, scene, points, np.full(len(points), 1.5 * scene.ball(ball).radius))
+    box, plane = inside(np, scene, points, np.full(len(points), EDGE * scene.ball(ball).radius))
     touched = np.concatenate([box, plane], axis=1).any(axis=0)
     return frozenset(name for name, hit in zip(scene.names, touched, strict=True) if hit)
 
@@ -481,7 +481,7 @@ def _released_outside(rec, scene: Scene, ball: str, tracks: ImageTracks, t0: flo
     between 1/20 and 20 frees, is returned as it is."""
     if not (_released_inside(rec, scene, ball, t0) or _flies_through(rec, scene, ball, t0)):
         return rec
-    surface = inside(np, scene, rec.bounce_points[:1], np.array([1.5 * scene.ball(ball).radius]))
+    surface = inside(np, scene, rec.bounce_points[:1], np.array([EDGE * scene.ball(ball).radius]))
     centre = tracks.cameras[0].centre
     for step in range(1, 100):  # 1 -+ 1%, 2%, ...: the nearest depth first
         for factor in (1.0 - 0.01 * step, 1.0 + 0.01 * step, 20.0 ** (step / 99) if step > 50 else None):
@@ -573,7 +573,7 @@ def _flies_through(rec, scene: Scene, ball: str, t0: float = 0.0, surface=None) 
     if not rec.bounces:
         return False
     radius = scene.ball(ball).radius
-    box, plane = surface or inside(np, scene, rec.bounce_points[:1], np.array([1.5 * radius]))
+    box, plane = surface or inside(np, scene, rec.bounce_points[:1], np.array([EDGE * radius]))
     # The flight's own curve every 5 ms: between two frames a path can cross a thin solid.
     times = np.arange(t0, max(rec.bounces[0] - NEAR_BOUNCE, t0) + 1e-9, 0.005)
     flight = np.stack([rec.flights[0, 0] + _back(rec, t) for t in times])

@@ -85,6 +85,15 @@ AIR_SPEED = 6.0
 # A box top narrower than this many ball radii (a net, a wall's top) is no bounce surface
 # for the start.
 NARROW = 4.0
+# A bounce point within this many ball radii of a solid is on it (the centre one radius
+# above a top, up to sqrt(EDGE^2 - 1) radii past its outline). Read off the rays at a
+# bounce time read between frames, the point is uncertain by centimetres along its ray: a
+# drive at 15 m/s that bounced 11 cm inside the table's end, seen from behind, was read
+# up to 13 cm farther on, past the outline grown by one radius, and its start put the
+# bounce on the floor, 3.5 m farther along the rays (its fit 2.6 m off). A floor bounce
+# whose ray meets the table's height that near its edge is a coincidence, as one inside
+# the outline is.
+EDGE = 2.0
 # The prior's standard deviation of the change of a bounce's velocity along the surface
 # (m/s): friction changes it by at most mu (1 + e) |v_n|, about 1 m/s for a table-tennis
 # ball at 4 m/s onto the table (mu 0.25, e 0.9).
@@ -307,7 +316,8 @@ def reconstructions(tracks: ImageTracks, ball: str, scene: Scene, *, radius: flo
 
 class _Surface(NamedTuple):
     """An upward-facing surface a bounce can be on: the ball centre's height there, and
-    the outline ``(x_lo, x_hi, y_lo, y_hi)`` that holds the centre (None: a plane)."""
+    the outline ``(x_lo, x_hi, y_lo, y_hi)`` that holds the centre (None: a plane): the
+    top's grown by ``sqrt(EDGE^2 - 1)`` radii."""
 
     height: float
     outline: tuple[float, float, float, float] | None
@@ -320,10 +330,11 @@ class _Surface(NamedTuple):
 
 
 def _surfaces(scene: Scene, radius: float) -> list[_Surface]:
-    """The scene's upward faces: box tops (outlines grown by the radius) at least
-    ``NARROW`` radii wide, and planes."""
-    out = [_Surface(float(c[2] + h[2] + radius), (c[0] - h[0] - radius, c[0] + h[0] + radius,
-                                                  c[1] - h[1] - radius, c[1] + h[1] + radius))
+    """The scene's upward faces: box tops (outlines grown by ``sqrt(EDGE^2 - 1)`` radii)
+    at least ``NARROW`` radii wide, and planes."""
+    grow = math.sqrt(EDGE**2 - 1.0) * radius
+    out = [_Surface(float(c[2] + h[2] + radius), (c[0] - h[0] - grow, c[0] + h[0] + grow,
+                                                  c[1] - h[1] - grow, c[1] + h[1] + grow))
            for c, h in zip(np.asarray(scene.box_centre), np.asarray(scene.box_half), strict=True)
            if 2 * min(h[0], h[1]) >= NARROW * radius]
     out += [_Surface(float(o + radius), None)
