@@ -65,6 +65,18 @@ MAGNUS = 1.0
 # MuJoCo's angular drag coefficient (its third fluidcoef, ``--angular-drag``), 1.5 by
 # default as in MuJoCo: it halves a table-tennis ball's 300 rad/s in 0.25 s of flight.
 ANGULAR_DRAG = 1.5
+# The net's box, as the scene declares it (its centre and half sizes, m).
+_NET = mujoco.MjModel.from_xml_path(SCENE).geom("net")
+NET_CENTRE, NET_HALF = np.array(_NET.pos), np.array(_NET.size)
+
+
+def clears_net(p, radius: float = 0.02) -> bool:
+    """Whether a path ``p`` sampled about every millisecond stays clear of the net: the
+    ball's centre never within its radius and 1 cm (what a 16 m/s ball moves between two
+    samples) of the net's box. The height at which a path crosses the net does not say
+    it: a ball that clips the net's top can still cross above it."""
+    gap = np.linalg.norm(np.maximum(np.abs(np.asarray(p) - NET_CENTRE) - NET_HALF, 0.0), axis=1)
+    return bool(np.min(gap) > radius + 0.01)
 
 
 def draw_shot(rng, scene, t) -> tuple[dict, np.ndarray]:
@@ -87,8 +99,8 @@ def draw_shot(rng, scene, t) -> tuple[dict, np.ndarray]:
         p = np.asarray(run.position)
         low = np.flatnonzero((p[1:-1, 2] < p[:-2, 2]) & (p[1:-1, 2] <= p[2:, 2])) + 1
         net = np.interp(0.0, p[:, 1], p[:, 2]) if p[0, 1] < 0 < p[-1, 1] else -1.0
-        if (net > 0.2 and len(low) == 1 and abs(p[low[0], 2] - 0.02) < 1e-3 and 0.2 < p[low[0], 1] < 1.3
-                and fine[low[0]] < float(t[-1]) - 0.12):
+        if (net > 0.2 and clears_net(p) and len(low) == 1 and abs(p[low[0], 2] - 0.02) < 1e-3
+                and 0.2 < p[low[0], 1] < 1.3 and fine[low[0]] < float(t[-1]) - 0.12):
             return truth, np.asarray(estim.simulate(scene, params, float(t[-1]), ts=t).position)
 
 
@@ -155,8 +167,8 @@ def draw_mujoco_shot(rng, t, magnus: float = MAGNUS, angular_drag: float = ANGUL
         truth["e"] = e
         low = np.flatnonzero((p[1:-1, 2] < p[:-2, 2]) & (p[1:-1, 2] <= p[2:, 2])) + 1
         net = np.interp(0.0, p[:, 1], p[:, 2]) if p[0, 1] < 0 < p[-1, 1] else -1.0
-        if (net > 0.2 and len(low) == 1 and abs(p[low[0], 2] - 0.02) < 2e-3 and 0.2 < p[low[0], 1] < 1.3
-                and fine[low[0]] < float(t[-1]) - 0.12):
+        if (net > 0.2 and clears_net(p) and len(low) == 1 and abs(p[low[0], 2] - 0.02) < 2e-3
+                and 0.2 < p[low[0], 1] < 1.3 and fine[low[0]] < float(t[-1]) - 0.12):
             return truth, p[np.round(np.asarray(t) / 0.001).astype(int)]
 
 
@@ -183,7 +195,7 @@ def draw_kind(rng, kind: str, magnus: float = MAGNUS, angular_drag: float = ANGU
     coefficient, friction and contact damping drawn as :func:`draw_mujoco_shot` draws them,
     kept where its contact's restitution lies within 0.75-0.97) or, given ``scene``, by
     estim in that scene (e and mu drawn as :func:`draw_shot` draws them); kept where it
-    clears the net by 0.2 m (its centre's height over the net) and bounces on the far half
+    clears the net by 0.2 m (its centre's height over the net), never touching it, and bounces on the far half
     (a serve on its own half first, then on the far half; any other shot on the far half
     first); tracked at 25 fps
     from its release until the opponent's hit, 0.1 to 0.3 s after that bounce (or until it
@@ -211,7 +223,7 @@ def draw_kind(rng, kind: str, magnus: float = MAGNUS, angular_drag: float = ANGU
         low = np.flatnonzero((z[1:-1] < z[:-2]) & (z[1:-1] <= z[2:]) & (np.abs(z[1:-1] - 0.02) < 3e-3)) + 1
         far = [i for i in low if 0.0 < y[i] < 1.37]
         cross = np.flatnonzero((y[:-1] < 0.0) & (y[1:] >= 0.0))
-        if not far or not cross.size or z[cross[0]] < 0.2:
+        if not far or not cross.size or z[cross[0]] < 0.2 or not clears_net(p):
             continue
         if (kind == "serve") != (len(low) >= 2 and -1.37 < y[low[0]] < 0.0 and low[1] == far[0]):
             continue
