@@ -193,9 +193,10 @@ def test_a_bounce_read_just_past_the_table_s_end_stays_on_the_table():
     """A drive at 15 m/s with 330 rad/s of topspin (the camera study's MuJoCo drives at
     seed 11, its fourth: Magnus coefficient 0.76, angular drag 0.1) bounces 11 cm inside
     the table's far end, seen from behind. Read from behind, the bounce time comes out up
-    to a quarter frame late and the bounce point 10-13 cm farther on; with noise draw 0 it
-    fell past the table's top grown by one radius, the start put the bounce on the floor
-    3.5 m farther along the rays (2.5 m off) and the fit from it ended 2.6 m off. A point
+    to a quarter frame late and the bounce point up to 13 cm farther on; with noise draw 0
+    the search with the bounce's normal speeds tied found the table's candidates 3-4 cm
+    past its top grown by one radius (1.42-1.43 m), put the bounce on the floor 3.5 m
+    farther along the rays (2.5 m off), and the fit from it ended 2.6 m off. A point
     within ``EDGE`` radii of a solid is now on it: every draw's bounce is on the table,
     within 15 cm of MuJoCo's."""
     sys.path.insert(0, str(ROOT / "docs" / "scripts"))

@@ -195,11 +195,11 @@ def draw_kind(rng, kind: str, magnus: float = MAGNUS, angular_drag: float = ANGU
     coefficient, friction and contact damping drawn as :func:`draw_mujoco_shot` draws them,
     kept where its contact's restitution lies within 0.75-0.97) or, given ``scene``, by
     estim in that scene (e and mu drawn as :func:`draw_shot` draws them); kept where it
-    clears the net by 0.2 m (its centre's height over the net), never touching it, and bounces on the far half
-    (a serve on its own half first, then on the far half; any other shot on the far half
-    first); tracked at 25 fps
-    from its release until the opponent's hit, 0.1 to 0.3 s after that bounce (or until it
-    falls below the table's top). Returns the truth, the path and the frames' times."""
+    clears the net by 0.2 m (its centre's height over the net), never touching it, and
+    bounces on the far half (a serve on its own half first, then on the far half; any
+    other shot on the far half first); tracked at 25 fps from its release until the
+    opponent's hit, 0.1 to 0.3 s after that bounce (or until it falls below the table's
+    top). Returns the truth, the path and the frames' times."""
     fine = np.arange(0.0, 2.5, 0.001)  # (with a spin that barely decays a chop flew past 1.5 s)
     spec = KINDS[kind]
     while True:

@@ -88,11 +88,12 @@ NARROW = 4.0
 # A bounce point within this many ball radii of a solid is on it (the centre one radius
 # above a top, up to sqrt(EDGE^2 - 1) radii past its outline). Read off the rays at a
 # bounce time read between frames, the point is uncertain by centimetres along its ray: a
-# drive at 15 m/s that bounced 11 cm inside the table's end, seen from behind, was read
-# up to 13 cm farther on, past the outline grown by one radius, and its start put the
-# bounce on the floor, 3.5 m farther along the rays (its fit 2.6 m off). A floor bounce
-# whose ray meets the table's height that near its edge is a coincidence, as one inside
-# the outline is.
+# drive at 15 m/s that bounced 11 cm inside the table's end, seen from behind, is read up
+# to 13 cm farther on. Searched again with its normal speeds tied (the first reading kept
+# almost none), its table candidates fell 3-4 cm past the outline grown by one radius, and
+# the floor's won, 3.5 m farther along the rays (its fit 2.6 m off). A floor bounce whose
+# ray meets the table's height that near its edge is a coincidence, as one inside the
+# outline is.
 EDGE = 2.0
 # The prior's standard deviation of the change of a bounce's velocity along the surface
 # (m/s): friction changes it by at most mu (1 + e) |v_n|, about 1 m/s for a table-tennis
