@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import (
     NT,
+    ROOT,
     SEED_MU,
     SEED_T_END,
     SEED_VX,
@@ -755,3 +756,32 @@ def test_evaluate_refuses_times_outside_the_solution(stairs, seed_traj):
     np.testing.assert_allclose(np.asarray(inside(t_end)), np.asarray(seed_traj.final.position), rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match=r"t must be finite and lie in \[0, t_end\]"):
         jax.block_until_ready(inside(t_end + 0.5))
+
+
+@pytest.mark.parametrize(("x", "aside", "fall", "solid"), [
+    (0.5, (), 0.5 - 0.1525 - 0.02, "net"),  # onto the net's top
+    (0.5, ("net",), 0.5 - 0.02, "table"),  # past the net to the table
+    (1.0, (), 0.5 + 0.76 - 0.02, "floor"),  # beside the table to the floor
+    (1.0, ("floor",), None, None),  # to no floor
+])
+def test_a_solid_set_aside_is_out_of_play(x, aside, fall, solid):
+    """``Scene.set_aside`` moves solids out of reach: a ball dropped from 0.5 m above the
+    table-tennis table's top, on the net's line or beside the table, first meets what is
+    left in play, at the closed-form time of its fall from rest in a vacuum, sqrt(2 h / g)."""
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "table_tennis.xml").with_air(None).set_aside(aside)
+    params = estim.Params.for_ball(scene, "pingpong", e=0.9, mu_t=0.0, mu=0.2, position=np.array([x, 0.0, 0.5]),
+                                   velocity=np.zeros(3))
+    events = estim.simulate(scene, params, 0.6).events
+    n = int(np.asarray(events.count).ravel()[0])
+    if fall is None:
+        assert n == 0
+        return
+    assert scene.face_label(int(np.asarray(events.face).reshape(-1)[0]))[0] == solid
+    assert float(np.asarray(events.t).reshape(-1)[0]) == pytest.approx(math.sqrt(2 * fall / float(scene.gravity)),
+                                                                       abs=1e-9)
+
+
+def test_set_aside_names_a_solid_the_scene_lacks():
+    scene = estim.load_scene(ROOT / "data" / "scenes" / "table_tennis.xml")
+    with pytest.raises(KeyError, match="'fence'.*'net'"):
+        scene.set_aside(("fence",))

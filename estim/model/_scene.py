@@ -102,6 +102,10 @@ LAWS = ("factor", "friction")
 LAW_TEXT = "estim:law"
 # The MJCF <custom><numeric> name prefix under which a scene declares a fit parameter's prior.
 PRIOR_NUMERIC = "estim:prior:"
+# How far a solid set aside (``Scene.set_aside``) is moved (m): out of reach of any ball a
+# simulation can follow (a second's flight covers tens of metres; a fall from rest reaches
+# 1e6 m after 450 s), and still small enough for float64 to keep a path's millimetres.
+OUT_OF_REACH = 1.0e6
 
 
 class Ball(NamedTuple):
@@ -209,6 +213,21 @@ class Scene(eqx.Module):
             self._boxes(), self._planes(), gravity=float(self.gravity), balls=self.balls,
             air=self.air, geometry=geometry,
         ).with_law(self.law).with_priors(self.priors)
+
+    def set_aside(self, names) -> Scene:
+        """The same scene with the solids ``names`` out of play: each box moved
+        ``OUT_OF_REACH`` above the origin, each plane's half-space ``OUT_OF_REACH`` behind
+        its face. The arrays keep their shapes, so a compiled program of the scene runs the
+        result as it is (a fit in pixels sets aside what no start bounces on:
+        ``estim.fitting._image``). A ``KeyError`` names a solid the scene lacks."""
+        unknown = [n for n in names if n not in self.names]
+        if unknown:
+            raise KeyError(f"unknown solid(s) {unknown}: this scene has {list(self.names)}")
+        aside = np.isin(np.asarray(self.names), list(names))
+        box = aside[:self.n_boxes, None]
+        centre = jnp.where(box, jnp.array([0.0, 0.0, OUT_OF_REACH]), self.box_centre)
+        offset = jnp.where(aside[self.n_boxes:], -OUT_OF_REACH, self.plane_offset)
+        return eqx.tree_at(lambda s: (s.box_centre, s.plane_offset), self, (centre, offset))
 
     def _boxes(self):
         return {n: (tuple(map(float, c)), tuple(map(float, h))) for n, c, h in
