@@ -315,7 +315,7 @@ def _kept(fits: dict, recs_of: dict) -> dict:
     met a solid on its way only where it ends where the starts and the priors say the ball
     is. (A MuJoCo serve whose second bounce, 8 cm before the net, sent it into the net's
     face: with the net set aside the fits ran to paths rolling along the table at e =
-    0.25-0.67, 32-35 cm off, where the fits that met the net lay 8-10 cm off.)"""
+    0.25-0.67, 32-35 cm off, where the fits kept, which met the net, lay 8-26 cm off.)"""
     return {k: f for k, f in fits.items() if not (k.endswith(ASIDE) and _doubted(f, recs_of[f[3]][0]))}
 
 
