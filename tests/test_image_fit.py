@@ -238,43 +238,48 @@ def test_the_second_reading_starts_from_paths_read_without_the_wild_rows():
     assert np.mean(np.linalg.norm(bf.model_position - path, axis=1)) < 0.04
 
 
-@pytest.mark.parametrize(("after", "note", "within"), [
-    (2, "2 row(s) at the track's ends (t = 0.360, 0.400 s)", 0.03),
-    (0, None, 0.04),
-], ids=["returned", "clean"])
-def test_rows_after_a_hit_at_the_track_s_end_are_fitted_without(after, note, within):
+@pytest.mark.parametrize(("before", "after", "note", "within"), [
+    (0, 2, "2 row(s) at the track's ends (t = 0.360, 0.400 s)", 0.03),
+    (1, 0, "1 row(s) at the track's ends (t = -0.040 s)", 0.03),
+    (1, 2, "3 row(s) at the track's ends (t = -0.040, 0.360, 0.400 s)", 0.03),
+    (0, 0, None, 0.04),
+], ids=["returned", "incoming", "both", "clean"])
+def test_rows_past_a_hit_at_the_track_s_ends_are_fitted_without(before, after, note, within):
     """A drive of estim's own physics (the camera study's seed 3, its first drive: 15 m/s
     with 400 rad/s of topspin, 9 frames at 25 fps), seen from the side with 2 px of noise,
-    tracked on past the opponent's return: hit half a frame after its last frame, the ball
-    goes back at 8 m/s, 2 rows more. With them in the fit its path lay 7.2 cm off at 2.7 px
-    rms (no note); the fit misses the last row by more than ``WILD`` noise levels and
-    ``APART`` times its other misses, and without it the row before, and the fit without
-    both (``HITS``) is the shot's own: 1.4 cm off when written. The same track without
-    them keeps every row."""
+    tracked on past the opponent's return (hit half a frame after its last frame, the ball
+    goes back at 8 m/s: 2 rows more), or from a row before the release (the incoming ball,
+    at 8 m/s, hit half a frame before it), or both. With them in the fit its path lay 7.2,
+    5.4 and 10.2 cm off (no note). The fit misses the last row by more than ``WILD`` noise
+    levels and ``APART`` times its other misses, and without it the row before; the fit,
+    released at the first row, passes through it, but the first four rows bend as no flight
+    does, and the fit without the first misses it so (``HITS``). Without them the fits are
+    the shot's own: 1.4, 1.0 and 1.0 cm off when written. The same track without them
+    keeps every row (1.4 cm)."""
     sys.path.insert(0, str(ROOT / "docs" / "scripts"))
     import camera_views
 
     scene = estim.load_scene(camera_views.SCENE)
-    params = estim.Params.for_ball(scene, "pingpong", e=0.8704385, mu_t=0.0, mu=0.3742278,
-                                   position=np.array([-0.0714271, -1.6689062, 0.4513921]),
-                                   velocity=np.array([-0.7953602, 14.9483784, 0.2878547]),
-                                   spin=np.array([-408.1264306, -35.366543, 39.685269]))
+    position, velocity = np.array([-0.0714271, -1.6689062, 0.4513921]), np.array([-0.7953602, 14.9483784, 0.2878547])
+    params = estim.Params.for_ball(scene, "pingpong", e=0.8704385, mu_t=0.0, mu=0.3742278, position=position,
+                                   velocity=velocity, spin=np.array([-408.1264306, -35.366543, 39.685269]))
     dt = 1 / camera_views.FPS
     t = np.arange(9) * dt
     path = np.asarray(estim.simulate(scene, params, float(t[-1]), ts=t).position)
     hit = path[-1] + (path[-1] - path[-2]) / 2
     back = [hit + np.array([0.25, -8.0, 1.5]) * (k - 0.5) * dt + [0.0, 0.0, -9.81 / 2 * ((k - 0.5) * dt) ** 2]
             for k in range(1, after + 1)]
-    times = np.concatenate([t, t[-1] + dt * np.arange(1, after + 1)])
+    came = [position - velocity * dt / 2 - np.array([0.2, 8.0, -1.0]) * dt / 2] * before
+    times = np.concatenate([-dt * np.arange(before, 0, -1), t, t[-1] + dt * np.arange(1, after + 1)])
     cam = camera_views.VIEWS["side"]
-    uv = (np.asarray(cam.project(np.concatenate([path, np.reshape(back, (-1, 3))])))
-          + 2.0 * np.random.default_rng(0).normal(size=(times.size, 2)))
+    rows = np.concatenate([np.reshape(came, (-1, 3)), path, np.reshape(back, (-1, 3))])
+    uv = np.asarray(cam.project(rows)) + 2.0 * np.random.default_rng(0).normal(size=(times.size, 2))
     tracks = ImageTracks("side", ("pingpong",), (cam,), {"pingpong": times}, {"pingpong": uv},
                          {"pingpong": np.zeros(times.size, np.int64)})
     bf = fit_image(scene, tracks).balls["pingpong"]
     ends = [n for n in bf.notes if "at the track's ends" in n]
     assert (ends == []) if note is None else (len(ends) == 1 and ends[0].startswith(note))
-    assert np.mean(np.linalg.norm(bf.model_position[:t.size] - path, axis=1)) < within
+    assert np.mean(np.linalg.norm(bf.model_position[before:before + t.size] - path, axis=1)) < within
 
 
 @pytest.mark.parametrize("seed", [3, 5])

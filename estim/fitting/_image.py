@@ -41,7 +41,9 @@ is the model at ``t + dt_camerak``).
    read without those rows; and so on from the new fit (``REREADS`` times at most).
    Where the fit misses the track's first or last row by more than ``WILD`` noise levels
    and ``APART`` times its other misses (the ball hit there by what the scene does not
-   hold), the fit runs again without that row, and so on from the new ends (``HITS``).
+   hold), the fit runs again without that row, and so on from the new ends (``HITS``); as
+   where the four rows at an end of the track bend as no flight does, away from the
+   bounces, and the fit without the end row misses it so.
 3. **Depth.** Depth (along a camera's axis) is the direction the pixels fix worst. From the
    fit's covariance, each ball's report gives the standard error of the release point
    along the first camera's axis and across it (``BallFit.depth``), and a note where the
@@ -209,18 +211,34 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
                    prior=prior, effects=effects, progress=progress)
     result = _fit_image(scene, tracks, **options)
     ends = {b: np.zeros(0, np.int64) for b in tracks.balls}  # the rows read as another shot's, per ball
+    probed = {b: set() for b in tracks.balls}  # end rows fitted without, and kept
     for _ in range(HITS):
-        more = {b: _hit_rows(tracks, b, bf, ends[b]) for b, bf in result.balls.items()}
-        more = {b: rows for b, rows in more.items() if rows.size}
+        more = {}
+        for b, bf in result.balls.items():
+            rows = _hit_rows(tracks, b, bf, ends[b])
+            if rows.size:
+                more[b] = (rows, None)
+                continue
+            for row in _kinked_ends(tracks, b, bf, ends[b]):
+                # A fit released at the first row passes through it, and one may pass
+                # close to the last: only a fit without it tells whether it lies off the
+                # others' path.
+                if row in probed[b] or b in more:
+                    continue
+                probed[b].add(row)
+                say(f"{b}: the track's four rows at t = {tracks.t[b][row]:.3f} s bend as no flight does, with no "
+                    "bounce among them: fitting without that row")
+                trial = _fit_image(scene, _without(tracks, b, np.append(ends[b], row)), **options).balls[b]
+                if _off(tracks, b, trial, row, np.append(ends[b], row)):
+                    more[b] = (np.array([row]), trial)
         if not more:
             break
-        for b, rows in more.items():
+        for b, (rows, fit) in more.items():
             say(f"{b}: the fit misses the track's end row(s) at t = "
                 f"{', '.join(f'{t:.3f}' for t in tracks.t[b][rows])} s by more than {WILD:g} noise levels and "
                 f"{APART:g} times the rms of its other misses: fitting again without them (a hit?)")
             ends[b] = np.sort(np.concatenate([ends[b], rows]))
-            bf = _fit_image(scene, _without(tracks, b, ends[b]), **options).balls[b]
-            result.balls[b] = bf
+            result.balls[b] = fit or _fit_image(scene, _without(tracks, b, ends[b]), **options).balls[b]
     for b, rows in ends.items():
         if rows.size:
             result.balls[b].notes.append(
@@ -395,18 +413,66 @@ def _wild_rows(tracks: ImageTracks, ball: str, bf, noise: float) -> tuple[np.nda
 
 def _hit_rows(tracks: ImageTracks, ball: str, bf, ends) -> np.ndarray:
     """The first and the last of ``ball``'s rows with pixels, not in ``ends`` (rows already
-    left out), that the fit ``bf`` misses (the length of the pixel residual) by more than
-    ``WILD`` times its noise level and ``APART`` times the rms of its misses of the other
-    rows (``HITS``); none where fewer than ``MIN_ROWS`` rows would be left."""
-    r = np.asarray(bf.residuals, dtype=np.float64)[:, :2]
-    miss = np.linalg.norm(r, axis=1)
-    left = np.flatnonzero(tracks.valid(ball) & np.isfinite(miss) & ~np.isin(np.arange(miss.size), ends))
+    left out), that the fit ``bf`` misses as :func:`_off` says; none where fewer than
+    ``MIN_ROWS`` rows would be left."""
+    left = np.flatnonzero(tracks.valid(ball) & ~np.isin(np.arange(len(tracks.t[ball])), ends))
     if left.size - 2 < MIN_ROWS:
         return np.zeros(0, np.int64)
     by_time = left[np.argsort(tracks.t[ball][left], kind="stable")]
-    out = [row for row in {int(by_time[0]), int(by_time[-1])}
-           if miss[row] > WILD * bf.noise_m and miss[row] > APART * math.sqrt(np.mean(r[left[left != row]] ** 2))]
-    return np.array(sorted(out), np.int64)
+    return np.array(sorted(row for row in {int(by_time[0]), int(by_time[-1])} if _off(tracks, ball, bf, row, ends)),
+                    np.int64)
+
+
+def _off(tracks: ImageTracks, ball: str, bf, row: int, ends) -> bool:
+    """Whether the fit ``bf`` misses ``ball``'s ``row`` (the distance in pixels between its
+    detection and the fitted path's projection) by more than ``WILD`` times its noise
+    level and ``APART`` times the rms of its misses of the other rows with pixels, not in
+    ``ends`` (``HITS``)."""
+    uv = tracks.uv[ball]
+    camera = tracks.cameras[int(tracks.view[ball][row])]
+    miss = float(np.linalg.norm(np.asarray(camera.project(np.asarray(bf.model_position)[row])) - uv[row]))
+    r = np.asarray(bf.residuals, dtype=np.float64)[:, :2]
+    others = tracks.valid(ball) & ~np.isin(np.arange(len(uv)), np.append(ends, row))
+    return bool(others.any() and miss > WILD * bf.noise_m and miss > APART * math.sqrt(np.mean(r[others] ** 2)))
+
+
+def _kinked_ends(tracks: ImageTracks, ball: str, bf, ends) -> list[int]:
+    """The first and the last of ``ball``'s rows with pixels, not in ``ends``, where the
+    third divided difference of the four rows of its camera at that end of the track (over
+    its spread under white noise, as ``estim.tracks._flights.robust_noise`` reads it)
+    exceeds ``WILD`` times the rms of those of the windows of four rows inside the track
+    with no bounce of the fit's start among them (the noise level: a flight's own third
+    differences are far below it, a bounce's kink is not), where the start puts no bounce
+    among those four: a kink at an end of the track away from the surfaces, which a fit
+    released at the first row passes through. None where fewer than 10 rows are left or no
+    window inside is without a bounce."""
+    left = np.flatnonzero(tracks.valid(ball) & ~np.isin(np.arange(len(tracks.t[ball])), ends))
+    if left.size < 10:
+        return []
+    by_time = left[np.argsort(tracks.t[ball][left], kind="stable")]
+    bounces = bf.initial.bounces if bf.initial is not None else ()
+    out = []
+    for end in (0, -1):
+        row = int(by_time[end])
+        rows = by_time[tracks.view[ball][by_time] == tracks.view[ball][row]]
+        t, uv = tracks.t[ball][rows], tracks.uv[ball][rows]
+        flights = [k for k in range(len(rows) - 3)
+                   if len(np.unique(t[k:k + 4])) == 4 and not any(t[k] < b < t[k + 3] for b in bounces)]
+        edge = 0 if end == 0 else len(rows) - 4
+        inner = [k for k in flights if k not in (0, len(rows) - 4)]
+        if edge not in flights or not inner:
+            continue
+        d = {k: _third(t[k:k + 4], uv[k:k + 4]) for k in [*inner, edge]}
+        if math.sqrt(np.mean(d[edge] ** 2)) > WILD * math.sqrt(np.mean([d[k] ** 2 for k in inner])):
+            out.append(row)
+    return out
+
+
+def _third(t, y) -> np.ndarray:
+    """The third divided difference of the rows ``y`` at the four times ``t``, over its
+    standard deviation in units of the rows' noise (``estim.tracks._flights.robust_noise``)."""
+    w = np.array([1.0 / np.prod([t[j] - t[m] for m in range(4) if m != j]) for j in range(4)])
+    return w @ y / np.linalg.norm(w)
 
 
 def _without(tracks: ImageTracks, ball: str, rows) -> ImageTracks:
