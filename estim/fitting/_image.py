@@ -40,8 +40,9 @@ is the model at ``t + dt_camerak``).
    the other rows) is more than ``REREAD`` times lower, every start runs again at it,
    read without those rows; and so on from the new fit (``REREADS`` times at most).
    Where the fit misses the track's first or last row by more than ``WILD`` noise levels
-   and ``HIT_APART`` times the noise its other misses show (the ball hit there by what the scene does not
-   hold), the fit runs again without that row, and so on from the new ends (``HITS``).
+   and ``HIT_APART`` times the noise its other misses show (the ball hit there by what
+   the scene does not hold), the fit runs again without that row, and so on from the new
+   ends (``HITS``).
 3. **Depth.** Depth (along a camera's axis) is the direction the pixels fix worst. From the
    fit's covariance, each ball's report gives the standard error of the release point
    along the first camera's axis and across it (``BallFit.depth``), and a note where the
@@ -147,17 +148,17 @@ NEAR_BOUNCE = 0.01
 # The suffix of the key of a start's run with solids set aside (``_fit_starts``).
 ASIDE = "/aside"
 # Rows at a track's ends that the fit misses by more than WILD noise levels and HIT_APART
-# times the noise its other misses show (``_off``) are read as another shot's (the ball hit by a racket or a
-# hand, which the scene does not hold, between two frames) and the fit runs again without
-# them, one row an end at a time (the fit passes close to the row next to one so missed),
-# HITS times at most. A drive of estim's own physics seen from the side, 9 frames and 2 more after the
-# opponent's return: 12.9 cm off at 9.1 px rms with them, the fit through the first 10 rows
-# 6.5 cm off missing the tenth by 112 px, through the first 9 at 2.5 cm, the track's own
-# without them. Not APART's 6: where the model's flight departs from the ball's at the
-# ends (MuJoCo's drives, whose spin halves in a quarter of a second where estim's holds:
-# seed 0, the second drive seen from the side, its first row missed by 7 times the
-# others' rms, 6 times their median's noise) a row of the shot's own had been taken out,
-# its fit 7.0 -> 10.7 cm off.
+# times the noise its other misses show (``_off``) are read as another shot's (the ball hit
+# by a racket or a hand, which the scene does not hold, between two frames) and the fit runs
+# again without them, one row an end at a time (the fit passes close to the row next to one
+# so missed), HITS times at most. A drive of estim's own physics seen from the side, 9
+# frames and 2 more after the opponent's return: 12.9 cm off at 9.1 px rms with them, the
+# fit through the first 10 rows 6.5 cm off missing the tenth by 112 px, through the first 9
+# at 2.5 cm, the track's own without them. Not APART's 6: where the model's flight departs
+# from the ball's at the ends (MuJoCo's drives, whose spin halves in a quarter of a second
+# where estim's holds: seed 0, the second drive seen from the side, its first row missed by
+# 7 times the others' rms, 6 times their median's noise) a row of the shot's own had been
+# taken out, its fit 7.0 -> 10.7 cm off.
 HITS = 3
 HIT_APART = 10.0
 
