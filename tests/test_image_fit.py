@@ -241,8 +241,9 @@ def test_the_second_reading_starts_from_paths_read_without_the_wild_rows():
 @pytest.mark.parametrize(("before", "after", "note", "within"), [
     (0, 2, "2 row(s) at the track's ends (t = 0.360, 0.400 s)", 0.03),
     (1, 0, "1 row(s) at the track's ends (t = -0.040 s)", 0.03),
+    (1, 2, "3 row(s) at the track's ends (t = -0.040, 0.360, 0.400 s)", 0.03),
     (0, 0, None, 0.03),
-], ids=["returned", "incoming", "clean"])
+], ids=["returned", "incoming", "both", "clean"])
 def test_rows_past_a_hit_at_the_track_s_ends_are_fitted_without(before, after, note, within):
     """A drive of estim's own physics (the camera study's seed 3, its first drive: 15 m/s
     with 400 rad/s of topspin, 9 frames at 25 fps), seen from the side with 2 px of noise,
@@ -252,8 +253,10 @@ def test_rows_past_a_hit_at_the_track_s_ends_are_fitted_without(before, after, n
     7.2 cm off at 2.7 px rms (no note); the fit misses the last row by more than ``WILD``
     noise levels and ``HIT_APART`` times the noise its other misses show, and without it
     the row before (``HITS``): 1.4 cm off when written, the track's own without them. The
-    incoming row was missed as much (1.4 cm off before, 1.0 now, the row named). The
-    track without them keeps every row (1.4 cm)."""
+    incoming row was missed as much (1.4 cm off before, 1.0 now, the row named). With
+    both, the fit without the last row passed through the first (the release) and missed
+    the second by 86 px, the fit 12.6 cm off: an end row goes where the fit misses it or
+    the row next to it (1.0 cm). The track without them keeps every row (1.4 cm)."""
     sys.path.insert(0, str(ROOT / "docs" / "scripts"))
     import camera_views
 

@@ -147,11 +147,11 @@ REREADS = 3
 NEAR_BOUNCE = 0.01
 # The suffix of the key of a start's run with solids set aside (``_fit_starts``).
 ASIDE = "/aside"
-# Rows at a track's ends that the fit misses by more than WILD noise levels and HIT_APART
-# times the noise its other misses show (``_off``) are read as another shot's (the ball hit
-# by a racket or a hand, which the scene does not hold, between two frames) and the fit runs
-# again without them, one row an end at a time (the fit passes close to the row next to one
-# so missed), HITS times at most. A drive of estim's own physics seen from the side, 9
+# Rows at a track's ends where the fit misses the row or the one next to it by more than
+# WILD noise levels and HIT_APART times the noise its other misses show (``_off``,
+# ``_hit_rows``) are read as another shot's (the ball hit by a racket or a hand, which the
+# scene does not hold, between two frames) and the fit runs again without them, one row an
+# end at a time (the fit passes close to the row next to one so missed), HITS times at most. A drive of estim's own physics seen from the side, 9
 # frames and 2 more after the opponent's return: 12.9 cm off at 9.1 px rms with them, the
 # fit through the first 10 rows 6.5 cm off missing the tenth by 112 px, through the first 9
 # at 2.5 cm, the track's own without them. Not APART's 6: where the model's flight departs
@@ -229,8 +229,8 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         if rows.size:
             result.balls[b].notes.append(
                 f"{rows.size} row(s) at the track's ends (t = {', '.join(f'{t:.3f}' for t in tracks.t[b][rows])} s) "
-                f"lie off the path of the others (each missed by more than {WILD:g} noise levels and {HIT_APART:g} "
-                "times the noise the other misses show, row by row from the end): the ball was hit there by what the "
+                f"lie off the path of the others (each, or the row next to it, missed by more than {WILD:g} noise levels "
+                f"and {HIT_APART:g} times the noise the other misses show, row by row from the end): the ball was hit there by what the "
                 "scene does not hold (a racket, a hand), or the detector lost it; fitted without them (read as "
                 "missed detections); the fitted path at their times is that of the other rows")
     result.source = tracks.source
@@ -399,14 +399,19 @@ def _wild_rows(tracks: ImageTracks, ball: str, bf, noise: float) -> tuple[np.nda
 
 def _hit_rows(tracks: ImageTracks, ball: str, bf, ends) -> np.ndarray:
     """The first and the last of ``ball``'s rows with pixels, not in ``ends`` (rows already
-    left out), that the fit ``bf`` misses as :func:`_off` says; none where fewer than
-    ``MIN_ROWS`` rows would be left."""
+    left out), where the fit ``bf`` misses that row or the one next to it as :func:`_off`
+    says; none where fewer than ``MIN_ROWS`` rows would be left. The row next to it:
+    with rows past hits at both ends the fit passes through an end row and misses its
+    neighbour (the first row is the release, and a path bent to one end's row can bend to
+    the other's: a drive with a row before its release and two after the return, fitted
+    with the last left out, missed the first three rows by 1.7, 86 and 19 px)."""
     left = np.flatnonzero(tracks.valid(ball) & ~np.isin(np.arange(len(tracks.t[ball])), ends))
     if left.size - 2 < MIN_ROWS:
         return np.zeros(0, np.int64)
     by_time = left[np.argsort(tracks.t[ball][left], kind="stable")]
-    return np.array(sorted(row for row in {int(by_time[0]), int(by_time[-1])} if _off(tracks, ball, bf, row, ends)),
-                    np.int64)
+    pairs = {int(by_time[0]): int(by_time[1]), int(by_time[-1]): int(by_time[-2])}
+    return np.array(sorted(end for end, next_ in pairs.items()
+                           if _off(tracks, ball, bf, end, ends) or _off(tracks, ball, bf, next_, ends)), np.int64)
 
 
 def _off(tracks: ImageTracks, ball: str, bf, row: int, ends) -> bool:
