@@ -151,7 +151,8 @@ ASIDE = "/aside"
 # WILD noise levels and HIT_APART times the noise its other misses show (``_off``,
 # ``_hit_rows``) are read as another shot's (the ball hit by a racket or a hand, which the
 # scene does not hold, between two frames) and the fit runs again without them, one row an
-# end at a time (the fit passes close to the row next to one so missed), HITS times at most. A drive of estim's own physics seen from the side, 9
+# end at a time (the fit passes close to the row next to one so missed), HITS times at
+# most. A drive of estim's own physics seen from the side, 9
 # frames and 2 more after the opponent's return: 12.9 cm off at 9.1 px rms with them, the
 # fit through the first 10 rows 6.5 cm off missing the tenth by 112 px, through the first 9
 # at 2.5 cm, the track's own without them. Not APART's 6: where the model's flight departs

@@ -614,11 +614,10 @@ def plan(scene, params, t_end, settings: OdeSettings) -> Plan:
         n_w, h_w = faces.normal_offset(jnp.maximum(wall, 0))
         wall = jnp.where(sliding & (wall >= 0) & (inner(n_w, v) <= SPEED_TOL)
                          & (inner(n_w, p) - h_w <= settings.slack), wall, -1)
-        # A support the ball moves away from is a support no more: it slides on its wall
-        # where it has one, else flies (a ball that the air held against the net, slid down
-        # it onto the table and was thrown off it by the table's friction had slid on "on"
-        # the net 30 cm from it, and at the table's edge left the table, its wall, and met
-        # it again, at one instant, until its steps ran out).
+        # A support the ball moves away from is a support no more (the friction of a wall
+        # it slid down onto can throw it off a vertical support): it slides on its wall
+        # where it has one, else flies. Kept, such a support would hold a ball metres from
+        # its face, and the wall's edge would be left and met again at one instant.
         leaves = sliding & (inner(n_sup, v) > REST_SPEED)
         support = jnp.where(leaves, wall, support)
         mode = jnp.where(leaves & (wall < 0), FLIGHT, mode)
