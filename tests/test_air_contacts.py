@@ -23,6 +23,7 @@ import pytest
 from conftest import ROOT
 
 import estim
+from estim.forward._constants import STEP_EXIT
 from estim.model._air import Air, acceleration, step_bounds
 
 G = 9.81
@@ -358,7 +359,7 @@ def test_a_ball_thrown_off_the_face_it_slid_on_leaves_it():
     labels = [scene.face_label(int(f)) for f in np.asarray(traj.events.face)[:n]]
     assert labels[0] == ("net", "-y") and labels[-2:] == [("table", "+z"), ("floor", "plane")], labels
     steps, nodes = traj.solution.steps, traj.solution.nodes
-    off = int(np.flatnonzero(np.asarray(steps.kind) == 3)[-1])  # (STEP_EXIT: off the table's side)
+    off = int(np.flatnonzero(np.asarray(steps.kind) == STEP_EXIT)[-1])  # (off the table's side)
     p_off = np.asarray(nodes.p1)[off]
     assert p_off[0] == pytest.approx(0.7625) and p_off[2] == pytest.approx(RADIUS)
     t_off, spin = float(np.asarray(nodes.t1)[off]), jnp.asarray(np.asarray(nodes.w1_post)[off])
