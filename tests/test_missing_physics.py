@@ -268,3 +268,25 @@ def test_a_fit_released_inside_a_solid_is_said_so_not_simulated(drop, release):
     assert any("lies inside 'table'" in n for n in report.notes) is inside
     # (Above the table: the air the drop scene lacks, over half a second of a ping-pong ball.)
     assert (report.missing_physics == []) is inside and report.effects is not None
+
+
+def test_a_diagnostic_that_cannot_simulate_leaves_the_fit_standing(drop):
+    """The diagnostics of a finished fit simulate its ball again (and probes of it); where
+    such a simulation cannot complete, the fit stood without an answer (a held-coefficient
+    probe of a camera fit's candidate raised and took ``fit_image`` down). A ball that
+    bounces forever on the floor (e = 1, released a millimetre up) over 100 s needs more
+    ODE steps than any default allows: the probes say so in a note, and nothing else of
+    the report changes."""
+    ball = drop.ball("pingpong")
+    values = {**registry.defaults(ball), "x0": 0.0, "y0": 0.0, "z0": ball.radius + 1e-3, "e": 1.0}
+    report = SimpleNamespace(values=dict(values), at_noise_floor=False, rms_m=3e-3, noise_m=1e-3, notes=[],
+                             missing_physics=[], ball="pingpong", model_position=np.zeros((3, 3)), effects=None)
+    problem = SimpleNamespace(mask=np.ones((3, 3), bool), t=np.array([0.0, 50.0, 100.0]), radius=ball.radius,
+                              mass=ball.mass, inertia=ball.inertia, cameras=None)
+    params = registry.to_params(values, radius=ball.radius, mass=ball.mass, inertia=ball.inertia, scene=drop)
+    with pytest.raises(RuntimeError, match="max_steps"):
+        missing_physics(drop, params, 100.0, 1e-3, "pingpong")
+    explain_misfit(drop, report, problem, ("e",))
+    assert report.missing_physics == [] and report.values == values
+    assert len(report.notes) == 1 and report.notes[0].startswith("the missing-physics probes did not run (a ball "
+                                                                 "needed more ODE steps than max_steps")

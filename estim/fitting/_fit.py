@@ -751,10 +751,11 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Seque
     if not span > 0:
         return
     if scene.air is None:
-        report.missing_physics = missing_physics(scene, params, span, noise, report.ball)
+        probe = functools.partial(missing_physics, scene, params, span, noise, report.ball)
     else:
         held = tuple(n for n in HELD if n not in free)
-        report.missing_physics = held_coefficients(scene, params, span, noise, report.ball, held)
+        probe = functools.partial(held_coefficients, scene, params, span, noise, report.ball, held)
+    report.missing_physics = _diagnostic(report, "the missing-physics probes", probe)
     for m in report.missing_physics:
         if m["explains"]:
             m["advice_note"] = format_note(m, float(problem.mass))
@@ -767,7 +768,20 @@ def attach_effects(scene: Scene, report: BallFit, problem: _Problem) -> None:
     the track gives no span or noise to measure them by)."""
     params, span, noise = _fitted_ball(scene, report, problem)
     ok = span > 0 and math.isfinite(noise) and noise > 0 and not solids_at_release(scene, params)[0]
-    report.effects = model_effects(scene, params, span, noise) if ok else []
+    sizes = functools.partial(model_effects, scene, params, span, noise)
+    report.effects = _diagnostic(report, "the effects' sizes", sizes) if ok else []
+
+
+def _diagnostic(report: BallFit, what: str, probe: Callable[[], list[dict]]) -> list[dict]:
+    """``probe()``, a diagnostic of a finished fit; where one of its simulations cannot
+    complete (``simulate``'s ``RuntimeError``: a probe's ball, its coefficient moved, may
+    meet what the fitted one does not), ``[]`` and a note saying so. The fit is the answer;
+    a diagnostic that fails must not take it away."""
+    try:
+        return probe()
+    except RuntimeError as err:
+        report.notes.append(f"{what} did not run ({err}): the fit stands, without them")
+        return []
 
 
 def _fitted_ball(scene: Scene, report: BallFit, problem: _Problem):
