@@ -23,17 +23,43 @@ def _points_in_front(camera, n=40):
     return p[np.asarray(camera.depth(p)) > 1.0][:n]
 
 
-def test_projection_is_opencvs():
-    cam = Camera.from_opencv(K, DIST, RVEC, TVEC)
+# OpenCV's longer distortion vectors: the rational model (k4 k5 k6, CALIB_RATIONAL_MODEL) and
+# the thin prism (s1-s4, CALIB_THIN_PRISM_MODEL), with values a calibration of a wide lens gives.
+RATIONAL = np.concatenate([DIST, [0.12, -0.03, 0.02]])
+PRISM = np.concatenate([RATIONAL, [0.0015, -0.0004, -0.0011, 0.0003]])
+
+
+def _written_out(pts, dist):
+    """OpenCV's projection (its documentation, "Camera Calibration and 3D Reconstruction")
+    written out term by term, for a distortion vector of 5, 8 or 12 numbers."""
+    k = np.zeros(12)
+    k[:len(dist)] = dist
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = k
+    pc = pts @ cv2.Rodrigues(RVEC)[0].T + TVEC
+    x, y = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+    r2 = x**2 + y**2
+    q = (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+    xd = x * q + 2 * p1 * x * y + p2 * (r2 + 2 * x**2) + s1 * r2 + s2 * r2**2
+    yd = y * q + p1 * (r2 + 2 * y**2) + 2 * p2 * x * y + s3 * r2 + s4 * r2**2
+    return np.stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
+
+
+@pytest.mark.parametrize("dist", [DIST, RATIONAL, PRISM], ids=["plain", "rational", "thin-prism"])
+def test_projection_is_opencvs(dist):
+    cam = Camera.from_opencv(K, dist, RVEC, TVEC)
     pts = _points_in_front(cam)
-    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, DIST)
+    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, dist)
     assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
+    assert np.abs(np.asarray(cam.project(pts)) - _written_out(pts, dist)).max() < 1e-9
+    # Each longer model's extra terms move the pixels (else the comparison proves nothing).
+    assert np.abs(_written_out(pts, dist) - _written_out(pts, dist[:5])).max() > (1.0 if len(dist) > 5 else -1.0)
     assert np.abs(np.asarray(cam.rotation) - cv2.Rodrigues(RVEC)[0]).max() < 1e-15
     assert np.abs(cam.rvec - RVEC).max() < 1e-14
 
 
-def test_projection_derivative_matches_finite_differences():
-    cam = Camera.from_opencv(K, DIST, RVEC, TVEC)
+@pytest.mark.parametrize("dist", [DIST, PRISM], ids=["plain", "thin-prism"])
+def test_projection_derivative_matches_finite_differences(dist):
+    cam = Camera.from_opencv(K, dist, RVEC, TVEC)
     p = _points_in_front(cam, 1)[0]
     J = np.asarray(jax.jacfwd(cam.project)(p))
     h = 1e-6
@@ -42,12 +68,13 @@ def test_projection_derivative_matches_finite_differences():
     assert np.abs(J - fd).max() < 1e-4 * np.abs(J).max()
 
 
-def test_undistortion_and_rays_invert_the_projection():
-    cam = Camera.from_opencv(K, DIST, RVEC, TVEC)
+@pytest.mark.parametrize("dist", [DIST, RATIONAL, PRISM], ids=["plain", "rational", "thin-prism"])
+def test_undistortion_and_rays_invert_the_projection(dist):
+    cam = Camera.from_opencv(K, dist, RVEC, TVEC)
     pts = _points_in_front(cam)
     uv = np.asarray(cam.project(pts))
     ours = cam.normalised(uv)
-    theirs = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, DIST, criteria=(cv2.TERM_CRITERIA_COUNT, 20, 0))[:, 0]
+    theirs = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, criteria=(cv2.TERM_CRITERIA_COUNT, 20, 0))[:, 0]
     assert np.abs(ours - theirs).max() < 1e-12
     # Each point lies on its pixel's ray (to the accuracy of 20 fixed-point iterations).
     d = cam.rays(uv)
@@ -98,15 +125,16 @@ def test_a_point_behind_the_camera_projects_finitely():
     assert np.all(np.isfinite(uv)) and np.abs(uv).max() > 1e5
 
 
+@pytest.mark.parametrize("dist", [DIST, PRISM], ids=["plain", "thin-prism"])
 @pytest.mark.parametrize("ext", ["yml", "json"])
-def test_reads_what_opencvs_file_storage_writes(tmp_path, ext):
+def test_reads_what_opencvs_file_storage_writes(tmp_path, ext, dist):
     path = tmp_path / f"left.{ext}"
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     fs.write("calibration_time", "Thu Nov 26 2026")
     fs.write("image_width", 1920)
     fs.write("image_height", 1080)
     fs.write("camera_matrix", K)
-    fs.write("distortion_coefficients", DIST.reshape(1, 5))
+    fs.write("distortion_coefficients", dist.reshape(1, -1))
     fs.write("avg_reprojection_error", 0.31)
     fs.write("rvec", RVEC.reshape(3, 1))
     fs.write("tvec", TVEC.reshape(3, 1))
@@ -114,8 +142,14 @@ def test_reads_what_opencvs_file_storage_writes(tmp_path, ext):
     cam = read_camera(path)
     assert cam.name == "left" and cam.size == (1920, 1080)
     pts = _points_in_front(cam)
-    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, DIST)
+    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, dist)
     assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
+    # Written back in OpenCV's terms (the shortest of its lengths that holds the model), the
+    # same camera.
+    back = cam.to_json()
+    assert back["distortion_coefficients"] == dist.tolist()
+    again = Camera.from_opencv(back["camera_matrix"], back["distortion_coefficients"], back["rvec"], back["tvec"])
+    assert np.abs(np.asarray(again.project(pts)) - expected[:, 0]).max() < 1e-9
 
 
 def _rows(a) -> str:
@@ -146,7 +180,7 @@ def _ros_matrix(key, a) -> str:
     return f"{key}:\n  rows: {a.shape[0]}\n  cols: {a.shape[1]}\n  data: {a.ravel().tolist()}\n"
 
 
-@pytest.mark.parametrize(("model", "distortion"), [("plumb_bob", DIST), ("rational_polynomial", [*DIST, 0, 0, 0])])
+@pytest.mark.parametrize(("model", "distortion"), [("plumb_bob", DIST), ("rational_polynomial", RATIONAL)])
 def test_reads_a_ros_camera_info_with_the_pose_added(tmp_path, model, distortion):
     """ROS's camera_info YAML as camera_calibration_parsers writes it (a rectified image's
     rectification and projection matrices beside the raw image's K and distortion), with
@@ -160,7 +194,7 @@ def test_reads_a_ros_camera_info_with_the_pose_added(tmp_path, model, distortion
                     + f"rvec: {RVEC.tolist()}\ntvec: {TVEC.tolist()}\n")
     cam = read_camera(path)
     pts = _points_in_front(cam)
-    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, DIST)
+    expected, _ = cv2.projectPoints(pts, RVEC, TVEC, K, np.asarray(distortion))
     assert np.abs(np.asarray(cam.project(pts)) - expected[:, 0]).max() < 1e-9
     assert cam.size == (1920, 1080)
 
@@ -188,7 +222,9 @@ def test_the_short_form(tmp_path, text):
      "give one of the two"),
     ("camera_matrix: [1000, 3, 320, 0, 1000, 240, 0, 0, 1]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n", "no skew"),
     ("camera_matrix: [1000, 0, 320, 0, 1000, 240, 0, 0, 1]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n"
-     "distortion_coefficients: [0.1, 0, 0, 0, 0, 0.2, 0, 0]\n", "beyond k1 k2 p1 p2 k3"),
+     "distortion_coefficients: [0.1, 0, 0, 0, 0, 0.2, 0, 0, 0, 0, 0, 0, 0.01, 0]\n", r"the sensor's tilt \(tau_x"),
+    ("camera_matrix: [1000, 0, 320, 0, 1000, 240, 0, 0, 1]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n"
+     "distortion_coefficients: [0.1, 0, 0, 0, 0, 0.2]\n", "6 distortion coefficients; OpenCV's are 4, 5, 8, 12 or 14"),
     ("camera_matrix: [1000, 0, 320, 0, 1000, 240, 0, 0]\nrvec: [0, 0, 0]\ntvec: [0, 0, 1]\n", "has 8 numbers"),
     ("rvec: [0, 0, nan]\ntvec: [0, 0, 1]\nf: 1000\nw: 640\nh: 480\n", "not a list of numbers"),
     ("this is not a camera\n", "expected 'key: value'"),

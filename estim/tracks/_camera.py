@@ -6,9 +6,18 @@ OpenCV's calibration module, "Camera Calibration and 3D Reconstruction"):
 
     X_c = R X + t                         R = Rodrigues(rvec): world -> camera
     x' = X_c / Z_c,  y' = Y_c / Z_c,      r^2 = x'^2 + y'^2
-    x'' = x' (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x' y' + p2 (r^2 + 2 x'^2)
-    y'' = y' (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y'^2) + 2 p2 x' y'
+    q = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
+    x'' = x' q + 2 p1 x' y' + p2 (r^2 + 2 x'^2) + s1 r^2 + s2 r^4
+    y'' = y' q + p1 (r^2 + 2 y'^2) + 2 p2 x' y' + s3 r^2 + s4 r^4
     u = fx x'' + cx,  v = fy y'' + cy,     K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+
+with OpenCV's distortion coefficients in its order, ``(k1, k2, p1, p2, k3, k4, k5, k6, s1,
+s2, s3, s4)``: radial (k1-k3), the rational model's denominator (k4-k6,
+``CALIB_RATIONAL_MODEL``), tangential (p1, p2) and thin prism (s1-s4,
+``CALIB_THIN_PRISM_MODEL``); a shorter vector (4, 5 or 8 numbers) leaves the rest 0, the
+plain model of most calibrations (k1 k2 p1 p2 [k3]). OpenCV's 14-number vector adds a
+tilted sensor (tau_x, tau_y, ``CALIB_TILTED_MODEL``), which estim does not model: a camera
+whose tilt is not 0 is refused.
 
 The camera looks along its +Z axis, its X to the right and Y down in the image. The
 projection (:meth:`Camera.project`) is differentiable in JAX with respect to the point; a
@@ -24,13 +33,13 @@ Camera files (:func:`read_camera`), one camera per file, in one of three forms:
   ``"type_id": "opencv-matrix"``), or by hand (a matrix as ``rows``, ``cols`` and
   ``data`` without the tag, as nested lists, or as a YAML block list of ``- x`` lines):
   ``camera_matrix``,
-  ``distortion_coefficients`` (4 or 5 numbers k1 k2 p1 p2 [k3]; longer vectors of OpenCV's
-  rational and thin-prism models are accepted only where their extra terms are zero),
+  ``distortion_coefficients`` (4, 5, 8, 12 or 14 numbers in OpenCV's order, above; the
+  tilt of 14 must be 0),
   ``rvec`` and ``tvec`` (the world-to-camera pose, as ``solvePnP`` gives it), and
   optionally ``image_width`` and ``image_height``; ROS's ``camera_info`` YAML (the same
   keys, with ``distortion_model``, ``rectification_matrix`` and ``projection_matrix``),
-  with the pose added: its ``distortion_model`` must be OpenCV's (``plumb_bob``, or
-  ``rational_polynomial`` with its extra terms zero), and its rectification and projection
+  with the pose added: its ``distortion_model`` must be OpenCV's (``plumb_bob`` or
+  ``rational_polynomial``), and its rectification and projection
   matrices, which describe the rectified image, are read and not used (estim projects
   into the image as it was filmed, through ``camera_matrix`` and the distortion: a track
   taken on rectified images goes with a camera file of the projection matrix's K and no
@@ -63,6 +72,10 @@ __all__ = ["Camera", "CameraArrays", "CameraError", "project", "read_camera", "r
 # Z_c below which a point counts as behind the camera (m).
 _MIN_DEPTH = 1e-6
 _UNDISTORT_ITERATIONS = 20
+# OpenCV's distortion coefficients that estim models (module docstring), and the lengths of
+# the vectors OpenCV writes (the last two of 14 are the sensor's tilt, which it does not).
+N_DISTORTION = 12
+_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 _MATRIX_KEYS = ("camera_matrix",)
 _DISTORTION_KEYS = ("distortion_coefficients",)
@@ -121,7 +134,8 @@ class Camera(eqx.Module):
         name: what the camera is called (its file's stem), for messages and the pixel
             tracks' ``camera`` column.
         matrix: ``(3, 3)`` the intrinsic matrix K (pixels).
-        distortion: ``(5,)`` k1, k2, p1, p2, k3.
+        distortion: ``(12,)`` k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 (OpenCV's
+            order; module docstring).
         rotation: ``(3, 3)`` R, world to camera.
         translation: ``(3,)`` t, world to camera (m): ``X_c = R X + t``.
         size: the image's ``(width, height)`` in pixels, where known.
@@ -129,16 +143,16 @@ class Camera(eqx.Module):
 
     name: str = eqx.field(static=True)
     matrix: Float[Array, "3 3"]
-    distortion: Float[Array, "5"]
+    distortion: Float[Array, "12"]
     rotation: Float[Array, "3 3"]
     translation: Float[Array, "3"]
     size: tuple[int, int] | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         K = np.asarray(self.matrix)
-        if K.shape != (3, 3) or np.asarray(self.distortion).shape != (5,) or np.asarray(self.rotation).shape != (3, 3) \
+        if K.shape != (3, 3) or np.asarray(self.distortion).shape != (N_DISTORTION,) or np.asarray(self.rotation).shape != (3, 3) \
                 or np.asarray(self.translation).shape != (3,):
-            raise CameraError(f"camera {self.name!r}: K must be 3x3, the distortion 5 numbers, R 3x3 and t 3 numbers")
+            raise CameraError(f"camera {self.name!r}: K must be 3x3, the distortion {N_DISTORTION} numbers, R 3x3 and t 3 numbers")
         for what, a in (("camera matrix", K), ("distortion", self.distortion), ("rotation", self.rotation),
                         ("translation", self.translation)):
             if not np.all(np.isfinite(np.asarray(a))):
@@ -156,18 +170,19 @@ class Camera(eqx.Module):
                     size: tuple[int, int] | None = None) -> Camera:
         """A camera from OpenCV's ``cameraMatrix``, ``distCoeffs``, ``rvec`` and ``tvec``."""
         d = np.asarray(distortion, dtype=np.float64).reshape(-1)
-        if d.size not in (0, 4, 5, 8, 12, 14):
+        if d.size not in _DISTORTION_LENGTHS:
             raise CameraError(f"camera {name!r}: {d.size} distortion coefficients; OpenCV's are 4, 5, 8, 12 or 14")
-        if np.any(d[5:] != 0):
-            raise CameraError(f"camera {name!r}: distortion coefficients beyond k1 k2 p1 p2 k3 are not zero "
-                              f"({d[5:].tolist()}); estim models k1 k2 p1 p2 k3 only")
-        d5 = np.zeros(5)
-        d5[:min(d.size, 5)] = d[:5]
+        if np.any(d[N_DISTORTION:] != 0):
+            raise CameraError(f"camera {name!r}: the sensor's tilt (tau_x, tau_y = {d[N_DISTORTION:].tolist()}, "
+                              "the last two of OpenCV's 14 distortion coefficients) is not 0; estim models "
+                              "k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4, not a tilted sensor")
+        full = np.zeros(N_DISTORTION)
+        full[:min(d.size, N_DISTORTION)] = d[:N_DISTORTION]
         rvec = np.asarray(rvec, dtype=np.float64).reshape(-1)
         tvec = np.asarray(tvec, dtype=np.float64).reshape(-1)
         if rvec.shape != (3,) or tvec.shape != (3,):
             raise CameraError(f"camera {name!r}: rvec and tvec need 3 numbers each, got {rvec.size} and {tvec.size}")
-        return cls(name=name, matrix=np.asarray(matrix, dtype=np.float64), distortion=d5, rotation=rodrigues(rvec),
+        return cls(name=name, matrix=np.asarray(matrix, dtype=np.float64), distortion=full, rotation=rodrigues(rvec),
                    translation=tvec, size=None if size is None else (int(size[0]), int(size[1])))
 
     @classmethod
@@ -215,14 +230,11 @@ class Camera(eqx.Module):
         K = np.asarray(self.matrix)
         yd = (uv[..., 1] - K[1, 2]) / K[1, 1]
         xd = (uv[..., 0] - K[0, 2]) / K[0, 0]
-        k1, k2, p1, p2, k3 = np.asarray(self.distortion)
         x, y = xd.copy(), yd.copy()
         if np.any(np.asarray(self.distortion) != 0):
             for _ in range(_UNDISTORT_ITERATIONS):
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                x = (xd - 2.0 * p1 * x * y - p2 * (r2 + 2.0 * x * x)) / radial
-                y = (yd - p1 * (r2 + 2.0 * y * y) - 2.0 * p2 * x * y) / radial
+                radial, dx, dy = _distortion_terms(np.asarray(self.distortion), x, y)
+                x, y = (xd - dx) / radial, (yd - dy) / radial
         return np.stack([x, y], axis=-1)
 
     def rays(self, uv) -> np.ndarray:
@@ -235,8 +247,12 @@ class Camera(eqx.Module):
     def to_json(self) -> dict:
         """The camera in OpenCV's terms (``camera_matrix``, ``distortion_coefficients``,
         ``rvec``, ``tvec``), as plain lists."""
+        d = np.asarray(self.distortion)
+        # The shortest of OpenCV's lengths (5 at least) that holds every coefficient not 0.
+        nonzero = np.flatnonzero(d)
+        length = min(n for n in (5, 8, N_DISTORTION) if n > (nonzero[-1] if nonzero.size else 0))
         out = {"name": self.name, "camera_matrix": np.asarray(self.matrix).tolist(),
-               "distortion_coefficients": np.asarray(self.distortion).tolist(),
+               "distortion_coefficients": d[:length].tolist(),
                "rvec": self.rvec.tolist(), "tvec": np.asarray(self.translation).tolist()}
         if self.size is not None:
             out["image_width"], out["image_height"] = self.size
@@ -248,7 +264,7 @@ class CameraArrays(eqx.Module):
     :meth:`project` takes, per point, the index of the camera that sees it."""
 
     matrix: Float[Array, "cameras 3 3"]
-    distortion: Float[Array, "cameras 5"]
+    distortion: Float[Array, "cameras 12"]
     rotation: Float[Array, "cameras 3 3"]
     translation: Float[Array, "cameras 3"]
 
@@ -267,21 +283,31 @@ class CameraArrays(eqx.Module):
 
 def project(matrix, distortion, rotation, translation, points):
     """OpenCV's projection (module docstring) of world points ``(..., 3)`` by cameras whose
-    arrays broadcast against them (``(..., 3, 3)``, ``(..., 5)``, ``(..., 3, 3)``,
+    arrays broadcast against them (``(..., 3, 3)``, ``(..., 12)``, ``(..., 3, 3)``,
     ``(..., 3)``); JAX, differentiable in every argument."""
     pc = jnp.einsum("...ij,...j->...i", rotation, jnp.asarray(points)) + translation
     z = jnp.maximum(pc[..., 2], _MIN_DEPTH)
     x, y = pc[..., 0] / z, pc[..., 1] / z
-    k1, k2, p1, p2, k3 = (distortion[..., i] for i in range(5))
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    radial, dx, dy = _distortion_terms(distortion, x, y)
+    xd, yd = x * radial + dx, y * radial + dy
     return jnp.stack([matrix[..., 0, 0] * xd + matrix[..., 0, 2], matrix[..., 1, 1] * yd + matrix[..., 1, 2]],
                      axis=-1)
 
 
 _project_compiled = jax.jit(project)
+
+
+def _distortion_terms(distortion, x, y):
+    """The distortion of normalised image coordinates ``(x', y')`` (module docstring) as
+    ``(q, dx, dy)``: ``x'' = x' q + dx``, ``y'' = y' q + dy``. NumPy or JAX: the projection
+    and OpenCV's fixed-point undistortion (``x' = (x'' - dx) / q``) share it."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (distortion[..., i] for i in range(N_DISTORTION))
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    q = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4
+    dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + s3 * r2 + s4 * r4
+    return q, dx, dy
 
 
 # ------------------------------------------------------------------------------- files
@@ -337,7 +363,7 @@ def _camera_from(entries: dict, name: str) -> Camera:
         raise CameraError(f"no {missing}: {form}")
     model = entries.get(_DISTORTION_MODEL, _OPENCV_MODELS[0])
     if model not in _OPENCV_MODELS:
-        raise CameraError(f"distortion_model {model!r}: estim models OpenCV's pinhole distortion k1 k2 p1 p2 k3 "
+        raise CameraError(f"distortion_model {model!r}: estim models OpenCV's pinhole distortion "
                           f"({' or '.join(_OPENCV_MODELS)}), not this one")
     vector = {k: _numbers(entries[k], k) for k in entries if k not in _BOOKKEEPING + (_DISTORTION_MODEL,)}
     if short:
