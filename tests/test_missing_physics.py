@@ -26,6 +26,7 @@ from estim.fitting._missing_physics import (
     held_coefficients,
     missing_physics,
     model_effects,
+    one_restitution,
 )
 
 DROP_XML = ROOT / "data" / "scenes" / "drop.xml"
@@ -280,7 +281,8 @@ def test_a_diagnostic_that_cannot_simulate_leaves_the_fit_standing(drop):
     ball = drop.ball("pingpong")
     values = {**registry.defaults(ball), "x0": 0.0, "y0": 0.0, "z0": ball.radius + 1e-3, "e": 1.0}
     report = SimpleNamespace(values=dict(values), at_noise_floor=False, rms_m=3e-3, noise_m=1e-3, notes=[],
-                             missing_physics=[], ball="pingpong", model_position=np.zeros((3, 3)), effects=None)
+                             missing_physics=[], ball="pingpong", model_position=np.zeros((3, 3)), effects=None,
+                             contacts=(("floor", "plane"),) * 3, n_outliers=0)
     problem = SimpleNamespace(mask=np.ones((3, 3), bool), t=np.array([0.0, 50.0, 100.0]), radius=ball.radius,
                               mass=ball.mass, inertia=ball.inertia, cameras=None)
     params = registry.to_params(values, radius=ball.radius, mass=ball.mass, inertia=ball.inertia, scene=drop)
@@ -290,3 +292,20 @@ def test_a_diagnostic_that_cannot_simulate_leaves_the_fit_standing(drop):
     assert report.missing_physics == [] and report.values == values
     assert len(report.notes) == 1 and report.notes[0].startswith("the missing-physics probes did not run (a ball "
                                                                  "needed more ODE steps than max_steps")
+
+
+def test_one_restitution_is_said_only_for_surfaces_the_scene_declares_different(drop):
+    """The table-tennis scene declares its table, floor and net surfaces of their own: a
+    path that bounces on the table and then the floor is said to have one e for both (the
+    surfaces in the order met, each once); one on the table alone is not. A scene that
+    declares none (the seed's stairs: five treads and the ground, all one surface) never is."""
+    table = estim.load_scene(TABLE_XML)
+    assert one_restitution(table, (("table", "+z"),) * 2, "pingpong", 0.85, 0) == []
+    (entry,) = one_restitution(table, (("table", "+z"), ("table", "+z"), ("floor", "plane"), ("floor", "plane"),
+                                       ("table", "-y")), "pingpong", 0.402, 12)
+    assert entry["surfaces"] == ["table", "floor"] and entry["explains"]
+    assert "e = 0.402" in entry["advice"] and "12 row(s) set aside" in entry["advice"]
+    assert one_restitution(table, (("net", "-y"), ("table", "+z")), "pingpong", 0.85, 0)[0]["surfaces"] == ["net", "table"]
+    stairs = estim.load_scene(ROOT / "data" / "scenes" / "stairs.xml")
+    assert stairs.surfaces == () and one_restitution(
+        stairs, tuple((n, "+z") for n in stairs.names), "golf", 0.7, 0) == []

@@ -107,6 +107,30 @@ def test_declared_geometry(tmp_path):
         estim.Scene.from_arrays({"b": ((0, 0, 0), (1, 1, 1))}, geometry="round")
 
 
+def test_declared_surfaces(tmp_path):
+    """A scene declares which solids are surfaces of their own (<custom><text
+    name="estim:surfaces">, groups separated by ';'); the solids no group names are one
+    surface; a name the scene lacks, or one named twice, is an error naming it; the
+    declaration survives another geometry."""
+    body = f"""    {GROUND}
+    <geom name="table" type="box" pos="1 0 0.25" size="0.5 0.25 0.25"/>
+    <geom name="net" type="box" pos="1 0 0.6" size="0.01 0.25 0.1"/>
+    <geom name="step" type="box" pos="-1 0 0.1" size="0.5 0.25 0.1"/>
+    {BALL}"""
+    plain = estim.load_scene(write(tmp_path, body))
+    assert plain.surfaces == () and {plain.surface(n) for n in plain.names} == {0}
+    declared = '<custom><text name="estim:surfaces" data="table net; floor"/></custom>'
+    scene = estim.load_scene(write(tmp_path, body, option=declared))
+    assert scene.surfaces == (("table", "net"), ("floor",))
+    assert [scene.surface(n) for n in ("table", "net", "floor", "step")] == [1, 1, 2, 0]
+    assert scene.with_geometry("seed").surfaces == scene.surfaces
+    for data, words in (("table; roof", r"unknown solid\(s\) \['roof'\]"), ("table; table floor", "one surface"),
+                        ("table;; floor", "each surface has a solid")):
+        bad = f'<custom><text name="estim:surfaces" data="{data}"/></custom>'
+        with pytest.raises(ValueError, match="<text name='estim:surfaces'>: surfaces: .*" + words):
+            estim.load_scene(write(tmp_path, body, option=bad))
+
+
 # ---------------------------------------------------------------------------------------
 # MJCF errors name the geom
 # ---------------------------------------------------------------------------------------

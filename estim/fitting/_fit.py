@@ -81,6 +81,7 @@ from ._missing_physics import (
     held_coefficients,
     missing_physics,
     model_effects,
+    one_restitution,
 )
 from ._sharding import gather, mesh_of, padded_size, per_unit, place
 
@@ -732,10 +733,12 @@ def _fit_all(scene, data, *, free, fixed, loss, steps, restarts, max_segments, p
 
 
 def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Sequence[str]) -> None:
-    """For a fit above its noise floor (``estim.fitting._missing_physics``): in a scene without
-    air, how far the air the scene leaves out would move this ball over this track; in a scene
-    with air, how far the air coefficients the fit held (not in ``free``) would, a quarter
-    off. In ``report.missing_physics`` and, where it could explain the misfit, as a note.
+    """For a fit above its noise floor (``estim.fitting._missing_physics``): whether its path
+    bounces on two surfaces the scene declares different (``one_restitution``); in a scene
+    without air, how far the air the scene leaves out would move this ball over this track; in
+    a scene with air, how far the air coefficients the fit held (not in ``free``) would, a
+    quarter off. In ``report.missing_physics`` and, where it could explain the misfit, as a
+    note.
     A fit released inside a solid gets a note saying so instead."""
     params, span, noise = _fitted_ball(scene, report, problem)
     solids = solids_at_release(scene, params)[0]
@@ -748,15 +751,18 @@ def explain_misfit(scene: Scene, report: BallFit, problem: _Problem, free: Seque
         return
     if report.at_noise_floor or not math.isfinite(report.rms_m):
         return
+    surfaces = one_restitution(scene, report.contacts, report.ball, report.values["e"], report.n_outliers)
+    report.notes.extend(m["advice"] for m in surfaces)
     if not span > 0:
+        report.missing_physics = surfaces
         return
     if scene.air is None:
         probe = functools.partial(missing_physics, scene, params, span, noise, report.ball)
     else:
         held = tuple(n for n in HELD if n not in free)
         probe = functools.partial(held_coefficients, scene, params, span, noise, report.ball, held)
-    report.missing_physics = _diagnostic(report, "the missing-physics probes", probe)
-    for m in report.missing_physics:
+    report.missing_physics = surfaces + _diagnostic(report, "the missing-physics probes", probe)
+    for m in report.missing_physics[len(surfaces):]:
         if m["explains"]:
             m["advice_note"] = format_note(m, float(problem.mass))
             report.notes.append(m["advice_note"])

@@ -48,6 +48,15 @@ default or a prior). The effects, where the scene and the ball have them:
 - ``compression at the bounce``: a ball with a compression (``estim.Params``, fitted on
   request) against the rigid ball, whose contacts are at its radius.
 
+And one thing no simulation sizes: the contact laws hold one restitution for every
+surface. A ball that bounces on a table and then on the floor keeps a different share of
+its normal speed on each (MuJoCo's default floor contact keeps about a quarter where its
+table contact keeps 0.85), and one e cannot follow both: the fit follows one surface's
+bounces, sets the other's rows aside as outliers and reads an e between the two (a rally
+shot run on to the floor, seen from the side: e 0.40 for 0.85, docs/pages/cameras.md).
+Where a fit above its noise floor bounces on two surfaces the scene declares different
+(``Scene.surfaces``), :func:`one_restitution` says so.
+
 Cost: one closed-form vacuum run and one ODE run (still air; a second run of the same
 compiled program for the spinning ball when a spin is given). The ODE program compiles
 once per process (seconds) and then runs in milliseconds.
@@ -76,7 +85,7 @@ from ..model._params import Params
 from ..model._scene import Scene
 
 __all__ = ["EXPLAINS", "HELD", "SAMPLES", "SPREAD", "format_effects", "format_note", "held_coefficients",
-           "missing_physics", "model_effects"]
+           "missing_physics", "model_effects", "one_restitution"]
 
 # An effect that moves the ball by at least this many noise levels could explain residuals
 # above the noise floor (the fit's floor allows 1.3 noise levels of rms).
@@ -199,6 +208,39 @@ def missing_physics(
         out.append(entry(f"a spinning ball (Magnus, {_short(float(spin))} rad/s backspin)", in_air[1], in_air[0],
                          f"add {option} to the scene and fit the spin (--also spin)"))
     return out
+
+
+def one_restitution(scene: Scene, contacts, ball_label: str, e: float, outliers: int) -> list[dict]:
+    """The entry of a fitted path that bounces on two or more surfaces the scene declares
+    different (``Scene.surfaces``; module docstring), ``[]`` for a path on one.
+
+    Args:
+        scene: the scene of the fit.
+        contacts: the fitted path's impacts within the data, ``(solid, face)`` in time order
+            (``BallFit.contacts``).
+        ball_label: the ball's name.
+        e: the restitution the fit read.
+        outliers: the rows the fit set aside.
+
+    Returns:
+        One dict with ``effect``, ``ball``, ``surfaces`` (the first solid met on each
+        surface, in the order met), ``explains`` (True: one e for surfaces that differ
+        leaves residuals above the noise) and ``advice``.
+    """
+    met: list[str] = []
+    for solid, _ in contacts:
+        if all(scene.surface(solid) != scene.surface(m) for m in met):
+            met.append(solid)
+    if len(met) < 2:
+        return []
+    names = " and then on ".join(repr(m) for m in met)
+    aside = f"here {outliers} row(s) set aside as outliers, " if outliers else ""
+    return [{"effect": f"one restitution for the surfaces {', '.join(met)}", "ball": ball_label, "surfaces": met,
+             "explains": True,
+             "advice": (f"the fitted path bounces on {names}, surfaces the scene declares different, with the one "
+                        f"restitution every surface has in estim's laws (e = {e:.3g}): where the ball keeps less of "
+                        f"its speed on one, the fit follows one surface's bounces and gives up the other's ({aside}"
+                        f"e between the two); fit the rows before the ball reaches {met[1]!r}")}]
 
 
 def _first_flight(run, ts, t_span: float) -> np.ndarray:

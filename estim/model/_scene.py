@@ -70,6 +70,17 @@ table-tennis ball on a table, from the literature::
 A fit takes the scene's priors unless told otherwise (``estim.fit(..., prior=...)``,
 ``estim fit --prior``); a scene that declares none adds nothing to any fit.
 
+A scene may say which of its solids are of different *surfaces* (a table and the floor
+under it: a ball keeps less of its speed on one than on the other), as groups of geom
+names separated by ``;``, each group one surface; the solids it does not name are one
+surface together::
+
+    <custom><text name="estim:surfaces" data="table; floor; net"/></custom>
+
+estim's contact laws hold one restitution for every surface; a fit whose path bounces on
+two surfaces of a scene that declares them says so (``estim.fitting._missing_physics``).
+A scene that declares none is one surface.
+
 A piece that lies inside a plane's half-space for every radius (the bottom of a tread
 standing on the ground, and its bottom edges and corners) can never be reached and is
 dropped when the scene is built; this is exact, not an approximation.
@@ -102,6 +113,8 @@ LAWS = ("factor", "friction")
 LAW_TEXT = "estim:law"
 # The MJCF <custom><numeric> name prefix under which a scene declares a fit parameter's prior.
 PRIOR_NUMERIC = "estim:prior:"
+# The MJCF <custom><text> name under which a scene declares its surfaces (module docstring).
+SURFACES_TEXT = "estim:surfaces"
 # How far a solid set aside (``Scene.set_aside``) is moved (m): out of reach of any ball a
 # simulation can follow (a second's flight covers tens of metres; a fall from rest reaches
 # 1e6 m after 450 s), and still small enough for float64 to keep a path's millimetres.
@@ -162,6 +175,8 @@ class Scene(eqx.Module):
         priors: static: what is known of the fit's parameters before any data, as the MJCF
             file declares it: ``(name, mean, standard deviation)`` per parameter (module
             docstring; ``estim.fitting._registry.prior_arrays`` reads them).
+        surfaces: static: the groups of solids the MJCF file declares surfaces of their
+            own, by name (module docstring); the solids no group names are one surface.
     """
 
     box_centre: Float[Array, "boxes 3"]
@@ -177,6 +192,7 @@ class Scene(eqx.Module):
     law: object = eqx.field(static=True, default=None)
     geometry: str = eqx.field(static=True, default="exact")
     priors: tuple[tuple[str, float, float], ...] = eqx.field(static=True, default=())
+    surfaces: tuple[tuple[str, ...], ...] = eqx.field(static=True, default=())
 
     @property
     def n_boxes(self) -> int:
@@ -207,12 +223,32 @@ class Scene(eqx.Module):
         """The same scene with other priors: ``(name, mean, standard deviation)`` each."""
         return dataclasses.replace(self, priors=tuple((str(n), float(m), float(s)) for n, m, s in priors))
 
+    def with_surfaces(self, groups) -> Scene:
+        """The same scene with other surfaces: groups of solid names, each group one surface
+        (the solids no group names are one surface together). A ``ValueError`` names a solid
+        the scene lacks or one named twice."""
+        groups = tuple(tuple(str(n) for n in g) for g in groups)
+        named = [n for g in groups for n in g]
+        unknown = sorted(set(named) - set(self.names))
+        if unknown:
+            raise ValueError(f"surfaces: unknown solid(s) {unknown}: this scene has {list(self.names)}")
+        twice = sorted({n for n in named if named.count(n) > 1})
+        if twice or not all(groups):
+            raise ValueError(f"surfaces: each solid belongs to one surface, and each surface has a solid; "
+                             f"got {[list(g) for g in groups]}")
+        return dataclasses.replace(self, surfaces=groups)
+
+    def surface(self, solid: str) -> int:
+        """The surface of the solid ``solid``: the index of its group in :attr:`surfaces`
+        plus one, 0 for a solid no group names."""
+        return next((k + 1 for k, g in enumerate(self.surfaces) if solid in g), 0)
+
     def with_geometry(self, geometry: str) -> Scene:
         """The same scene with another contact geometry, ``"exact"`` or ``"seed"``."""
         return Scene.from_arrays(
             self._boxes(), self._planes(), gravity=float(self.gravity), balls=self.balls,
             air=self.air, geometry=geometry,
-        ).with_law(self.law).with_priors(self.priors)
+        ).with_law(self.law).with_priors(self.priors).with_surfaces(self.surfaces)
 
     def set_aside(self, names) -> Scene:
         """The same scene with the solids ``names`` out of play: each box moved
@@ -473,9 +509,30 @@ def scene_from_model(model, *, source: str = "<model>") -> Scene:
     if not boxes and not planes:
         raise ValueError(f"{source}: the scene has no contact surfaces (box or plane geoms)")
     law = _declared(model, source, LAW_TEXT, LAWS, "contact law")
-    return Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls), air=air,
+    scene = Scene.from_arrays(boxes, planes, gravity=-gz, balls=tuple(balls), air=air,
                              geometry=_declared(model, source, GEOMETRY_TEXT, GEOMETRIES, "contact geometry"),
                              ).with_law(None if law == LAWS[0] else law).with_priors(_priors(model, source))
+    try:
+        return scene.with_surfaces(_surfaces(model))
+    except ValueError as err:
+        raise ValueError(f"{source}: <text name={SURFACES_TEXT!r}>: {err}") from None
+
+
+def _text(model, name: str) -> str | None:
+    """The data of the MJCF ``<custom><text name=NAME>``, or ``None`` where there is none."""
+    import mujoco
+
+    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, name)
+    if i < 0:
+        return None
+    start, size = int(model.text_adr[i]), int(model.text_size[i])
+    return bytes(model.text_data[start:start + size]).split(b"\0", 1)[0].decode().strip()
+
+
+def _surfaces(model) -> tuple[tuple[str, ...], ...]:
+    """The surfaces an MJCF file declares (module docstring): groups of geom names."""
+    text = _text(model, SURFACES_TEXT)
+    return () if text is None else tuple(tuple(g.split()) for g in text.split(";"))
 
 
 def _priors(model, source: str) -> tuple[tuple[str, float, float], ...]:
@@ -500,13 +557,9 @@ def _priors(model, source: str) -> tuple[tuple[str, float, float], ...]:
 def _declared(model, source: str, text: str, choices: tuple[str, ...], what: str) -> str:
     """The choice an MJCF file declares in ``<custom><text name=TEXT data="..."/></custom>``,
     the first of ``choices`` if it declares none."""
-    import mujoco
-
-    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, text)
-    if i < 0:
+    value = _text(model, text)
+    if value is None:
         return choices[0]
-    start, size = int(model.text_adr[i]), int(model.text_size[i])
-    value = bytes(model.text_data[start:start + size]).split(b"\0", 1)[0].decode().strip()
     if value not in choices:
         raise ValueError(f"{source}: <text name={text!r} data={value!r}> declares an unknown "
                          f"{what}; expected one of {choices}")
