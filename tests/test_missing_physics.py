@@ -260,7 +260,8 @@ def test_a_fit_released_inside_a_solid_is_said_so_not_simulated(drop, release):
     ball = drop.ball("pingpong")
     values = {**registry.defaults(ball), **dict(zip(("x0", "y0", "z0"), release, strict=True))}
     report = SimpleNamespace(values=values, at_noise_floor=False, rms_m=3e-3, noise_m=1e-3, notes=[],
-                             missing_physics=[], ball="pingpong", model_position=np.zeros((3, 3)), effects=None)
+                             missing_physics=[], ball="pingpong", model_position=np.zeros((3, 3)), effects=None,
+                             contacts=(), n_outliers=0)
     problem = SimpleNamespace(mask=np.ones((3, 3), bool), t=np.array([0.0, 0.25, 0.5]), radius=ball.radius,
                               mass=ball.mass, inertia=ball.inertia, cameras=None)
     explain_misfit(drop, report, problem, ("e",))
