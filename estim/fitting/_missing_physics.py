@@ -50,10 +50,10 @@ default or a prior). The effects, where the scene and the ball have them:
 
 And one thing no simulation sizes: the contact laws hold one restitution for every
 surface. A ball that bounces on a table and then on the floor keeps a different share of
-its normal speed on each (MuJoCo's default floor contact keeps about a quarter where its
-table contact keeps 0.85), and one e cannot follow both: the fit follows one surface's
+its normal speed on each (MuJoCo's default floor contact keeps a small part where its
+table contact keeps 0.83), and one e cannot follow both: the fit follows one surface's
 bounces, sets the other's rows aside as outliers and reads an e between the two (a rally
-shot run on to the floor, seen from the side: e 0.40 for 0.85, docs/pages/cameras.md).
+shot run on to the floor, seen from the side: e 0.36 for 0.83, docs/pages/fitting.md).
 Where a fit above its noise floor bounces on two surfaces the scene declares different
 (``Scene.surfaces``), :func:`one_restitution` says so.
 
