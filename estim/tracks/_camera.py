@@ -9,15 +9,18 @@ OpenCV's calibration module, "Camera Calibration and 3D Reconstruction"):
     q = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
     x'' = x' q + 2 p1 x' y' + p2 (r^2 + 2 x'^2) + s1 r^2 + s2 r^4
     y'' = y' q + p1 (r^2 + 2 y'^2) + 2 p2 x' y' + s3 r^2 + s4 r^4
-    u = fx x'' + cx,  v = fy y'' + cy,     K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    (x''', y''') = T(tau_x, tau_y) (x'', y'')              (a tilted sensor; T = 1 untilted)
+    u = fx x''' + cx,  v = fy y''' + cy,   K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
 
 with OpenCV's distortion coefficients in its order, ``(k1, k2, p1, p2, k3, k4, k5, k6, s1,
-s2, s3, s4)``: radial (k1-k3), the rational model's denominator (k4-k6,
-``CALIB_RATIONAL_MODEL``), tangential (p1, p2) and thin prism (s1-s4,
-``CALIB_THIN_PRISM_MODEL``); a shorter vector (4, 5 or 8 numbers) leaves the rest 0, the
-plain model of most calibrations (k1 k2 p1 p2 [k3]). OpenCV's 14-number vector adds a
-tilted sensor (tau_x, tau_y, ``CALIB_TILTED_MODEL``), which estim does not model: a camera
-whose tilt is not 0 is refused.
+s2, s3, s4, tau_x, tau_y)``: radial (k1-k3), the rational model's denominator (k4-k6,
+``CALIB_RATIONAL_MODEL``), tangential (p1, p2), thin prism (s1-s4,
+``CALIB_THIN_PRISM_MODEL``) and the tilt of a sensor not square to the optical axis
+(``CALIB_TILTED_MODEL``, a Scheimpflug camera): T maps ``(x'', y'', 1)`` through OpenCV's
+``computeTiltProjectionMatrix``, ``M = P_z R_y(tau_y) R_x(tau_x)`` with ``P_z = [[m22, 0,
+-m02], [0, m22, -m12], [0, 0, 1]]`` (``m`` = ``R_y R_x``), and divides by the third
+component. A shorter vector (4, 5, 8 or 12 numbers) leaves the rest 0: most calibrations
+give the plain model, k1 k2 p1 p2 [k3].
 
 The camera looks along its +Z axis, its X to the right and Y down in the image. The
 projection (:meth:`Camera.project`) is differentiable in JAX with respect to the point; a
@@ -33,8 +36,7 @@ Camera files (:func:`read_camera`), one camera per file, in one of three forms:
   ``"type_id": "opencv-matrix"``), or by hand (a matrix as ``rows``, ``cols`` and
   ``data`` without the tag, as nested lists, or as a YAML block list of ``- x`` lines):
   ``camera_matrix``,
-  ``distortion_coefficients`` (4, 5, 8, 12 or 14 numbers in OpenCV's order, above; the
-  tilt of 14 must be 0),
+  ``distortion_coefficients`` (4, 5, 8, 12 or 14 numbers in OpenCV's order, above),
   ``rvec`` and ``tvec`` (the world-to-camera pose, as ``solvePnP`` gives it), and
   optionally ``image_width`` and ``image_height``; ROS's ``camera_info`` YAML (the same
   keys, with ``distortion_model``, ``rectification_matrix`` and ``projection_matrix``),
@@ -72,9 +74,8 @@ __all__ = ["Camera", "CameraArrays", "CameraError", "project", "read_camera", "r
 # Z_c below which a point counts as behind the camera (m).
 _MIN_DEPTH = 1e-6
 _UNDISTORT_ITERATIONS = 20
-# OpenCV's distortion coefficients that estim models (module docstring), and the lengths of
-# the vectors OpenCV writes (the last two of 14 are the sensor's tilt, which it does not).
-N_DISTORTION = 12
+# OpenCV's distortion coefficients (module docstring), and the lengths of the vectors it writes.
+N_DISTORTION = 14
 _DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 _MATRIX_KEYS = ("camera_matrix",)
@@ -134,8 +135,8 @@ class Camera(eqx.Module):
         name: what the camera is called (its file's stem), for messages and the pixel
             tracks' ``camera`` column.
         matrix: ``(3, 3)`` the intrinsic matrix K (pixels).
-        distortion: ``(12,)`` k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 (OpenCV's
-            order; module docstring).
+        distortion: ``(14,)`` k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y
+            (OpenCV's order; module docstring).
         rotation: ``(3, 3)`` R, world to camera.
         translation: ``(3,)`` t, world to camera (m): ``X_c = R X + t``.
         size: the image's ``(width, height)`` in pixels, where known.
@@ -143,7 +144,7 @@ class Camera(eqx.Module):
 
     name: str = eqx.field(static=True)
     matrix: Float[Array, "3 3"]
-    distortion: Float[Array, "12"]
+    distortion: Float[Array, "14"]
     rotation: Float[Array, "3 3"]
     translation: Float[Array, "3"]
     size: tuple[int, int] | None = eqx.field(static=True, default=None)
@@ -172,12 +173,8 @@ class Camera(eqx.Module):
         d = np.asarray(distortion, dtype=np.float64).reshape(-1)
         if d.size not in _DISTORTION_LENGTHS:
             raise CameraError(f"camera {name!r}: {d.size} distortion coefficients; OpenCV's are 4, 5, 8, 12 or 14")
-        if np.any(d[N_DISTORTION:] != 0):
-            raise CameraError(f"camera {name!r}: the sensor's tilt (tau_x, tau_y = {d[N_DISTORTION:].tolist()}, "
-                              "the last two of OpenCV's 14 distortion coefficients) is not 0; estim models "
-                              "k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4, not a tilted sensor")
         full = np.zeros(N_DISTORTION)
-        full[:min(d.size, N_DISTORTION)] = d[:N_DISTORTION]
+        full[:d.size] = d
         rvec = np.asarray(rvec, dtype=np.float64).reshape(-1)
         tvec = np.asarray(tvec, dtype=np.float64).reshape(-1)
         if rvec.shape != (3,) or tvec.shape != (3,):
@@ -230,10 +227,14 @@ class Camera(eqx.Module):
         K = np.asarray(self.matrix)
         yd = (uv[..., 1] - K[1, 2]) / K[1, 1]
         xd = (uv[..., 0] - K[0, 2]) / K[0, 0]
+        d = np.asarray(self.distortion)
+        if np.any(d[12:] != 0):  # the tilt undone first, as OpenCV's undistortPoints does
+            w = np.stack([xd, yd, np.ones_like(xd)], axis=-1) @ np.linalg.inv(_tilt(d)).T
+            xd, yd = w[..., 0] / w[..., 2], w[..., 1] / w[..., 2]
         x, y = xd.copy(), yd.copy()
-        if np.any(np.asarray(self.distortion) != 0):
+        if np.any(d[:12] != 0):
             for _ in range(_UNDISTORT_ITERATIONS):
-                radial, dx, dy = _distortion_terms(np.asarray(self.distortion), x, y)
+                radial, dx, dy = _distortion_terms(d, x, y)
                 x, y = (xd - dx) / radial, (yd - dy) / radial
         return np.stack([x, y], axis=-1)
 
@@ -250,7 +251,7 @@ class Camera(eqx.Module):
         d = np.asarray(self.distortion)
         # The shortest of OpenCV's lengths (5 at least) that holds every coefficient not 0.
         nonzero = np.flatnonzero(d)
-        length = min(n for n in (5, 8, N_DISTORTION) if n > (nonzero[-1] if nonzero.size else 0))
+        length = min(n for n in (5, 8, 12, N_DISTORTION) if n > (nonzero[-1] if nonzero.size else 0))
         out = {"name": self.name, "camera_matrix": np.asarray(self.matrix).tolist(),
                "distortion_coefficients": d[:length].tolist(),
                "rvec": self.rvec.tolist(), "tvec": np.asarray(self.translation).tolist()}
@@ -264,7 +265,7 @@ class CameraArrays(eqx.Module):
     :meth:`project` takes, per point, the index of the camera that sees it."""
 
     matrix: Float[Array, "cameras 3 3"]
-    distortion: Float[Array, "cameras 12"]
+    distortion: Float[Array, "cameras 14"]
     rotation: Float[Array, "cameras 3 3"]
     translation: Float[Array, "cameras 3"]
 
@@ -283,13 +284,15 @@ class CameraArrays(eqx.Module):
 
 def project(matrix, distortion, rotation, translation, points):
     """OpenCV's projection (module docstring) of world points ``(..., 3)`` by cameras whose
-    arrays broadcast against them (``(..., 3, 3)``, ``(..., 12)``, ``(..., 3, 3)``,
+    arrays broadcast against them (``(..., 3, 3)``, ``(..., 14)``, ``(..., 3, 3)``,
     ``(..., 3)``); JAX, differentiable in every argument."""
     pc = jnp.einsum("...ij,...j->...i", rotation, jnp.asarray(points)) + translation
     z = jnp.maximum(pc[..., 2], _MIN_DEPTH)
     x, y = pc[..., 0] / z, pc[..., 1] / z
     radial, dx, dy = _distortion_terms(distortion, x, y)
-    xd, yd = x * radial + dx, y * radial + dy
+    w = jnp.einsum("...ij,...j->...i", _tilt(distortion),
+                   jnp.stack([x * radial + dx, y * radial + dy, jnp.ones_like(x)], axis=-1))
+    xd, yd = w[..., 0] / w[..., 2], w[..., 1] / w[..., 2]  # (untilted: w = (x'', y'', 1) exactly)
     return jnp.stack([matrix[..., 0, 0] * xd + matrix[..., 0, 2], matrix[..., 1, 1] * yd + matrix[..., 1, 2]],
                      axis=-1)
 
@@ -301,13 +304,28 @@ def _distortion_terms(distortion, x, y):
     """The distortion of normalised image coordinates ``(x', y')`` (module docstring) as
     ``(q, dx, dy)``: ``x'' = x' q + dx``, ``y'' = y' q + dy``. NumPy or JAX: the projection
     and OpenCV's fixed-point undistortion (``x' = (x'' - dx) / q``) share it."""
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (distortion[..., i] for i in range(N_DISTORTION))
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (distortion[..., i] for i in range(12))
     r2 = x * x + y * y
     r4 = r2 * r2
     q = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4
     dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + s3 * r2 + s4 * r4
     return q, dx, dy
+
+
+def _tilt(distortion):
+    """OpenCV's ``computeTiltProjectionMatrix`` of the tilt ``(tau_x, tau_y)`` (the last two
+    coefficients): ``M = P_z R_y R_x`` (module docstring), ``(..., 3, 3)``; the identity,
+    exactly, for no tilt. NumPy or JAX, as ``distortion`` is."""
+    xp = jnp if isinstance(distortion, jax.Array) else np
+    tx, ty = distortion[..., 12], distortion[..., 13]
+    cx, sx, cy, sy = xp.cos(tx), xp.sin(tx), xp.cos(ty), xp.sin(ty)
+    rows = ((cy, sy * sx, -sy * cx), (xp.zeros_like(tx), cx, sx), (sy, -cy * sx, cy * cx))  # R_y R_x
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = rows
+    projected = ((m22 * m00 - m02 * m20, m22 * m01 - m02 * m21, m22 * m02 - m02 * m22),
+                 (m22 * m10 - m12 * m20, m22 * m11 - m12 * m21, m22 * m12 - m12 * m22),
+                 (m20, m21, m22))
+    return xp.stack([xp.stack(r, axis=-1) for r in projected], axis=-2)
 
 
 # ------------------------------------------------------------------------------- files
