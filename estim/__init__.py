@@ -27,6 +27,7 @@ from .fitting._pooled import Clip as Clip
 from .fitting._pooled import PooledResult as PooledResult
 from .fitting._pooled import SharedFit as SharedFit
 from .fitting._pooled import fit_clips as fit_clips
+from .fitting._pooled import fit_image_clips as fit_image_clips
 from .forward._contact import contact_normals as contact_normals
 from .forward._effect_report import EffectReport as EffectReport
 from .forward._effect_report import effect_sizes as effect_sizes

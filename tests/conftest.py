@@ -59,7 +59,7 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 # worker running it alone at the end of the run.
 LONG_MODULES = ("test_native.py", "test_hard_cases.py", "test_exact_geometry.py", "test_pooled_calibration.py",
                 "test_image_fit.py", "test_cli.py", "test_pooled.py", "test_bench_accuracy.py", "test_fit.py",
-                "test_friction_law.py", "test_notebooks.py", "test_image_tracks.py", "test_ode.py",
+                "test_friction_law.py", "test_notebooks.py", "test_image_tracks.py", "test_image_clips.py", "test_ode.py",
                 "test_air_contacts.py", "test_config.py", "test_notebooks_fit.py", "test_simulate.py",
                 "test_fit_friction.py", "test_cli_scenes.py", "test_fit_air.py", "test_laws.py", "test_compression.py",
                 "test_properties.py", "test_sensitivity.py", "test_priors.py", "test_notebooks_cameras.py",

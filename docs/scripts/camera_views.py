@@ -79,11 +79,12 @@ def clears_net(p, radius: float = 0.02) -> bool:
     return bool(np.min(gap) > radius + 0.01)
 
 
-def draw_shot(rng, scene, t) -> tuple[dict, np.ndarray]:
+def draw_shot(rng, scene, t, ball: dict | None = None) -> tuple[dict, np.ndarray]:
     """A shot from behind one end of the table that clears the net and bounces once on the
     far half within the frames (drawn until one does): release 0.15-0.3 m above the table
     beyond its end, 4-7 m/s along y, spin about x (topspin to backspin, up to 150 rad/s)
-    with some sidespin. Returns the truth and the path at the times ``t``."""
+    with some sidespin. ``ball``: its ``e`` and ``mu`` (drawn, then replaced: the same
+    draws of the rest). Returns the truth and the path at the times ``t``."""
     while True:
         truth = {
             "e": float(rng.uniform(0.85, 0.92)),
@@ -92,6 +93,7 @@ def draw_shot(rng, scene, t) -> tuple[dict, np.ndarray]:
             "velocity": np.array([rng.uniform(-0.6, 0.6), rng.uniform(4.0, 7.0), rng.uniform(0.3, 1.5)]),
             "spin": np.array([rng.uniform(-150.0, 100.0), rng.uniform(-20.0, 20.0), rng.uniform(-60.0, 60.0)]),
         }
+        truth.update(ball or {})
         params = estim.Params.for_ball(scene, "pingpong", e=truth["e"], mu_t=0.0, mu=truth["mu"],
                                        position=truth["position"], velocity=truth["velocity"], spin=truth["spin"])
         fine = np.linspace(0.0, float(t[-1]), 601)
@@ -143,13 +145,14 @@ def mujoco_shot(position, velocity, spin, t, *, blunt_drag: float = 0.5, damping
     return np.array(out), (None if after is None else -after / before)
 
 
-def draw_mujoco_shot(rng, t, magnus: float = MAGNUS, angular_drag: float = ANGULAR_DRAG) -> tuple[dict, np.ndarray]:
+def draw_mujoco_shot(rng, t, magnus: float = MAGNUS, angular_drag: float = ANGULAR_DRAG,
+                     ball: dict | None = None) -> tuple[dict, np.ndarray]:
     """A shot as :func:`draw_shot` draws them, flown in MuJoCo (:func:`mujoco_shot`), with
     its drag coefficient (0.4-0.6, C_D = 2 C_blunt), friction (0.2-0.4) and contact
-    damping drawn too; kept where the restitution its contact shows lies within 0.8-0.95
-    (the scene's prior on e: 0.88 +- 0.05) and it clears the net and bounces once on the
-    far half within the frames. Returns the truth (``e`` the contact's) and the path at
-    ``t``."""
+    damping drawn too (``ball``: those of one ball, drawn and replaced); kept where the
+    restitution its contact shows lies within 0.8-0.95 (the scene's prior on e: 0.88 +-
+    0.05) and it clears the net and bounces once on the far half within the frames.
+    Returns the truth (``e`` the contact's) and the path at ``t``."""
     fine = np.arange(0.0, float(t[-1]) + 1e-9, 0.001)
     while True:
         truth = {
@@ -159,6 +162,7 @@ def draw_mujoco_shot(rng, t, magnus: float = MAGNUS, angular_drag: float = ANGUL
             "velocity": np.array([rng.uniform(-0.6, 0.6), rng.uniform(4.0, 7.0), rng.uniform(0.3, 1.5)]),
             "spin": np.array([rng.uniform(-150.0, 100.0), rng.uniform(-20.0, 20.0), rng.uniform(-60.0, 60.0)]),
         }
+        truth.update(ball or {})
         p, e = mujoco_shot(truth["position"], truth["velocity"], truth["spin"], fine,
                            blunt_drag=truth["drag_coefficient"] / 2, damping=truth["damping"], friction=truth["mu"],
                            magnus=magnus, angular_drag=angular_drag)

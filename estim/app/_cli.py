@@ -25,6 +25,7 @@ from ..fitting._job import (
     fit_export,
     fit_files,
     fit_image_csv,
+    fit_image_files,
     fit_pixels,
 )
 from ..fitting._simulation_report import SENSITIVITY_NAMES, sensitivities, simulation_report
@@ -197,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
                      choices=registry.NAMES + tuple(p.name for p in registry.REGISTRY if p.components != (p.name,)),
                      help="with several files: the parameters shared by every clip of a ball (e.g. "
                           "e drag_coefficient), estimated once from all clips; the release state "
-                          "(and a pixel clip's scale) stays per clip")
+                          "(and a pixel clip's scale, or an image clip's cameras' clock offsets) stays "
+                          "per clip; with --camera, several image-track files of the cameras")
     fit.add_argument("--devices", type=_positive_int, default=None,
                      help="with --shared: split the clips over this many of the devices JAX sees "
                           "(default: all)")
@@ -739,13 +741,39 @@ def _stdout_to_stderr():
         os.close(saved)
 
 
-def _cmd_fit_clips(args, scene, say) -> int:
-    """``estim fit A B ... --shared NAMES``: the clips fitted together."""
+def _devices(args) -> list:
+    """The devices of ``--devices N`` (the first N JAX sees), default all."""
     devices = jax.devices()
     if args.devices is not None:
         if args.devices > len(devices):
             raise UsageError(f"--devices {args.devices}: JAX sees only {len(devices)} device(s)")
         devices = devices[: args.devices]
+    return devices
+
+
+def _cmd_fit_image_clips(args, scene, say) -> int:
+    """``estim fit A B ... --camera CAM --shared NAMES``: image-track files fitted together."""
+    if args.format != "csv":
+        raise UsageError(f"--format {args.format} with --shared: fit a tracker's export on its own")
+    result, clips = fit_image_files(args.tracks, args.camera, scene, shared=tuple(args.shared), say=say,
+                                    loss=args.loss, devices=_devices(args),
+                                    **_also(args, default_image_free(scene, len(args.camera))))
+    extra = {"cameras": [c.to_json() for c in next(iter(clips.values())).cameras]}
+    if args.out:
+        from ..show._outputs import write_pooled_outputs  # lazy: matplotlib
+
+        write_pooled_outputs(result, clips, args.out, extra)
+        say(f"wrote {os.path.join(args.out, 'fit.json')}, forest.png and each clip's pixels-LABEL.png")
+    if args.json:
+        print(dumps({**result.to_json(), **extra}, indent=2))
+    else:
+        print(result.format_table())
+    return 0 if result.converged else 1
+
+
+def _cmd_fit_clips(args, scene, say) -> int:
+    """``estim fit A B ... --shared NAMES``: the clips fitted together."""
+    devices = _devices(args)
     with _stdout_to_stderr() if jax.process_count() > 1 else contextlib.nullcontext():
         result, data = fit_files(
             args.tracks, scene, shared=tuple(args.shared), pixels=args.pixels, ball=args.ball,
@@ -815,6 +843,9 @@ def _cmd_fit_export(args, scene, say) -> int:
 
 
 def _cmd_fit(args) -> int:
+    if args.distributed and args.camera:
+        raise UsageError("--distributed with --camera: image-track files fitted together run on one host "
+                         "(its devices: --devices)")
     if args.distributed and args.shared is not None:
         # First: JAX refuses to join the processes once its backend is up, and loading
         # the scene already makes arrays.
@@ -826,15 +857,14 @@ def _cmd_fit(args) -> int:
     _check_pixel_options(args)
     say = progress()
     if args.shared is not None:
-        if args.camera:
-            raise UsageError("--shared with --camera: fits of several image-track files together are not "
-                             "supported; fit each file on its own")
         if args.prior:
             raise UsageError("--prior with --shared: a fit of several clips takes no priors (the scene's are "
                              "dropped too: many clips fix what one cannot); fit one file to use a prior")
         if args.effects:
             raise UsageError("--effects with --shared: the effect sizes are those of one track; fit one file "
                              "to see them")
+        if args.camera:
+            return _cmd_fit_image_clips(args, scene, say)
         return _cmd_fit_clips(args, scene, say)
     for flag in ("devices", "distributed"):
         if getattr(args, flag):

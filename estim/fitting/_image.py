@@ -207,6 +207,14 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
         ValueError: a ball the scene lacks, too few rows per flight, more than
             ``registry.MAX_CAMERAS`` cameras, and every refusal of :func:`estim.fit`.
     """
+    return _fit_image_ends(scene, tracks, free=free, fixed=fixed, loss=loss, steps=steps, restarts=restarts,
+                           max_segments=max_segments, prior=prior, effects=effects, progress=progress)[0]
+
+
+def _fit_image_ends(scene: Scene, tracks: ImageTracks, *, free, fixed, loss, steps, restarts, max_segments, prior,
+                    effects, progress) -> tuple[FitResult, dict[str, np.ndarray]]:
+    """:func:`fit_image`, and per ball the rows at the track's ends it read as another
+    shot's (``HIT_APART``), which a fit that goes on from it leaves out too."""
     if not isinstance(tracks, ImageTracks):
         raise TypeError(f"tracks must be estim.ImageTracks (estim.read_image_tracks_csv), got {type(tracks).__name__}")
     if len(tracks.cameras) > registry.MAX_CAMERAS:
@@ -235,7 +243,7 @@ def fit_image(scene: Scene, tracks: ImageTracks, *, free=None, fixed=None, loss:
                 "scene does not hold (a racket, a hand), or the detector lost it; fitted without them (read as "
                 "missed detections); the fitted path at their times is that of the other rows")
     result.source = tracks.source
-    return result
+    return result, ends
 
 
 def _fit_image(scene: Scene, tracks: ImageTracks, *, free, fixed, loss, steps, restarts, max_segments, prior,

@@ -18,7 +18,7 @@ from ._fit import LATE_START, fit
 from ._hits import hits, longest_stretch
 from ._image import fit_image
 from ._initial import initial_guess, split_flights
-from ._pooled import Clip, fit_clips
+from ._pooled import Clip, fit_clips, fit_image_clips
 
 
 def fit_csv(tracks_path, scene: Scene | str, *, say=None, **options):
@@ -66,6 +66,38 @@ def fit_tracks(scene: Scene, tracks: Tracks, *, say=None, **options):
     return result, data
 
 
+def fit_image_files(paths, camera_paths, scene: Scene | str, *, shared, say=None, **options):
+    """Fit several image-track CSVs together, ``shared`` across the clips of each ball, every
+    file seen by the cameras of ``camera_paths`` (:func:`estim.fitting._pooled.fit_image_clips`):
+    ``estim fit A B ... --camera CAM --shared e``. Labels are the file names without
+    extension (the full path where two files share a name). Returns the
+    :class:`PooledResult` and the tracks read, ``label -> ImageTracks``."""
+    scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+    cameras = _cameras(camera_paths)
+    clips = {label: read_image_tracks_csv(path, cameras, balls=[b.name for b in scene.balls])
+             for path, label in zip(paths, _labels(paths), strict=True)}
+    return fit_image_clips(scene, clips, shared=shared, progress=say, **options), clips
+
+
+def _labels(paths) -> list[str]:
+    """Each file's label: its name without extension, or its path where two share a name."""
+    paths = [os.fspath(p) for p in paths]
+    if len(set(paths)) != len(paths):
+        raise ValueError(f"a file is given twice: {sorted({p for p in paths if paths.count(p) > 1})}")
+    stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
+    return stems if len(set(stems)) == len(stems) else paths
+
+
+def _cameras(camera_paths) -> list:
+    """The cameras of ``camera_paths``, each named by its file's stem (unique)."""
+    cameras = [read_camera(p) for p in camera_paths]
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two camera files share the name {sorted({n for n in names if names.count(n) > 1})} "
+                         "(a camera is named by its file's stem): rename one")
+    return cameras
+
+
 def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **options):
     """Fit an image-track CSV (``t,ball,u,v[,camera]``) seen by the cameras of
     ``camera_paths`` (camera files, in the order the ``camera`` column numbers them):
@@ -73,12 +105,7 @@ def fit_image_csv(tracks_path, camera_paths, scene: Scene | str, *, say=None, **
     :class:`FitResult` of :func:`estim.fitting._image.fit_image` and the
     :class:`~estim.tracks._image.ImageTracks` read."""
     scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
-    cameras = [read_camera(p) for p in camera_paths]
-    names = [c.name for c in cameras]
-    if len(set(names)) != len(names):
-        raise ValueError(f"two camera files share the name {sorted({n for n in names if names.count(n) > 1})} "
-                         "(a camera is named by its file's stem): rename one")
-    tracks = read_image_tracks_csv(tracks_path, cameras, balls=[b.name for b in scene.balls])
+    tracks = read_image_tracks_csv(tracks_path, _cameras(camera_paths), balls=[b.name for b in scene.balls])
     return fit_image(scene, tracks, progress=say, **options), tracks
 
 
@@ -276,10 +303,7 @@ def clips_from_files(paths, scene: Scene, *, pixels: bool = False, ball: str | N
     out, named (``say``) and reported, so that one such clip does not stop the fit of the
     others. A file that does not parse is an error, as for one file."""
     paths = [os.fspath(p) for p in paths]
-    stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
-    if len(set(paths)) != len(paths):
-        raise ValueError(f"a file is given twice: {sorted({p for p in paths if paths.count(p) > 1})}")
-    names = stems if len(set(stems)) == len(stems) else paths
+    names = _labels(paths)
     clips, left_out = [], {}
     for path, name in zip(paths, names, strict=True):
         if pixels:

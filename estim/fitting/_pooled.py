@@ -64,12 +64,18 @@ ball across all clips. The pipeline:
    distance from the shared value in its own standard errors, ``z``, name the clips that
    disagree (``|z| > 3``); ``Q = sum z^2`` (Cochran's heterogeneity statistic, C - 1
    degrees of freedom) says whether the clips scatter more than their noise allows.
+
+Clips of image tracks (shots filmed by calibrated cameras, :func:`fit_image_clips`) go
+the same way in pixels; their step 1 is :func:`estim.fit_image` per clip, and they keep
+the scene's priors (one camera needs them), a shared value's once per ball, which the
+standard errors count as the fit does.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -79,12 +85,15 @@ import numpy as np
 
 from .._config import require_x64
 from ..model._scene import Scene
+from ..tracks._camera import CameraArrays
+from ..tracks._image import ImageTracks
 from . import _registry as registry
 from ._fit import (
     LISTED_EVENTS,
     PARAMETERS,
     SETTLED,
     FitResult,
+    ImageRows,
     _at_floor,
     _fit_all,
     _inliers,
@@ -97,10 +106,12 @@ from ._fit import (
     explain_misfit,
     fit_program,
 )
+from ._image import RESTARTS as IMAGE_RESTARTS
+from ._image import _depth_report, _fit_image_ends, _without, default_image_free
 from ._loss import robust_curvature, robust_weight
 from ._sharding import gather, mesh_of, padded_size, per_unit, place
 
-__all__ = ["Clip", "PooledResult", "SharedFit", "fit_clips"]
+__all__ = ["Clip", "PooledResult", "SharedFit", "fit_clips", "fit_image_clips"]
 
 DISAGREE_Z = 3.0  # a clip whose own estimate lies further than this (in its stderr) disagrees
 OWN_STEPS = 15  # iterations of a clip's own estimate, from the joint optimum
@@ -227,8 +238,10 @@ class PooledResult:
                 wide = k and q > k + 3 * math.sqrt(2 * k)
                 rows.append(f"  {n}: Q = {q:.1f} on {k} dof (the clips scatter "
                             f"{'more than' if wide else 'as'} their noise allows)")
+            # (Residuals in metres, shown in mm; an image fit's in pixels.)
+            unit, scale = ("px", 1.0) if self.clips.balls[sf.clips[0]].unit == "px" else ("mm", 1e3)
             head = f"  {'clip':<22}" + "".join(f" {n + ' (own)':>26}" for n in sf.names) + \
-                f" {'rms (mm)':>9} {'noise':>7}  status"
+                f" {f'rms ({unit})':>9} {'noise':>7}  status"
             rows += [head, "  " + "-" * (len(head) - 2)]
             for label in sf.clips:
                 bf = self.clips.balls[label]
@@ -237,7 +250,7 @@ class PooledResult:
                     for n in sf.names)
                 status = ("converged" if bf.converged else "NOT converged") + (
                     "" if bf.at_noise_floor else ", above noise floor")
-                rows.append(f"  {label:<22}{own} {bf.rms_m * 1e3:9.2f} {bf.noise_m * 1e3:7.2f}  {status}")
+                rows.append(f"  {label:<22}{own} {bf.rms_m * scale:9.2f} {bf.noise_m * scale:7.2f}  {status}")
             for c, n, v, z in sf.disagree:
                 rows.append(f"  clip {c} disagrees on {n}: {v:.4f}, {z:+.1f} stderr from the shared value")
             for label in sf.clips:
@@ -319,7 +332,8 @@ def _run_joint(scene, free, shared_idx, local_idx, loss, steps, max_segments, st
     def one(theta, pr):
         pl, used = _plan_at(scene, registry.to_physical(theta, free, pr.fixed), pr, max_segments)
         J, r, aux, u, value = _linearise(scene, free, loss, theta, pr, pl, used, rolls)
-        return J / pr.scale, u, robust_weight(u, loss), value, (r, J, aux), _rolled(scene, pl, rolls)
+        m = pr.obs.size  # the data's rows (kept as a fit keeps them); the priors' follow
+        return J / pr.scale, u, robust_weight(u, loss), value, (r[:m], J[:m], aux), _rolled(scene, pl, rolls)
 
     def step(carry, _):
         state, best, rolled = carry
@@ -384,17 +398,7 @@ def fit_clips(
     require_x64()
     say = progress or (lambda msg: None)
     clips = list(clips)
-    if len(clips) < 2:
-        raise ValueError(f"a fit of shared parameters needs at least two clips, got {len(clips)}")
-    labels = [c.label for c in clips]
-    if len(set(labels)) != len(labels):
-        raise ValueError(f"clip labels must be unique, got {labels}")
-    shared = registry.expand(shared)
-    unknown = [n for n in shared if n not in PARAMETERS]
-    if unknown:
-        raise ValueError(f"unknown shared parameter(s) {unknown}; the parameters are {PARAMETERS}")
-    if "t0" in shared:
-        raise ValueError("t0 is a clip's own time offset and cannot be shared")
+    shared = _shared_names([c.label for c in clips], shared)
     lateral = any(np.isfinite(np.asarray(c.position)[:, 1]).any() for c in clips)
     free = registry.default_free(scene, lateral) if free is None else registry.expand(free)
     free = tuple(free) + tuple(n for n in shared if n not in free)
@@ -411,6 +415,136 @@ def fit_clips(
                                  restarts=restarts, max_segments=max_segments, progress=say,
                                  balls={c.label: c.ball for c in clips}, anchors={c.label: c.anchor for c in clips},
                                  devices=devices, prior={name: None for name, *_ in scene.priors})
+    return _together(scene, clips, units, individual, shared, loss=loss, joint_steps=joint_steps,
+                     restarts=restarts, max_segments=max_segments, devices=devices, per_clip=per_clip, say=say)
+
+
+def fit_image_clips(
+    scene: Scene,
+    clips: Mapping[str, ImageTracks],
+    *,
+    shared: Sequence[str] = ("e",),
+    free: tuple[str, ...] | None = None,
+    loss: str = "cauchy",
+    steps: int = 30,
+    joint_steps: int = 40,
+    restarts: int = IMAGE_RESTARTS,
+    max_segments: int = 48,
+    devices=None,
+    per_clip: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> PooledResult:
+    """Fit several clips of image tracks together (shots of one ball filmed by calibrated
+    cameras), with parameters shared across the clips of each ball.
+
+    Each ball of each clip is a unit (labelled by its clip, and ``clip/ball`` where a clip
+    has several balls). Step 1 is :func:`estim.fit_image` on each unit alone (its starts
+    read off the pixels through the physics, its rows past a hit left out), then the
+    joint fit, the standard errors and each clip's own estimates as :func:`fit_clips`
+    (module docstring, steps 2 to 4), in pixels. The scene's priors stay, unlike in
+    :func:`fit_clips`: one camera needs them (a spin no ball has, read to bend a path
+    along the lens; an e that trades with the depth of the whole path). Each clip's own
+    values keep theirs, and a prior on a shared value counts once per ball (in its first
+    unit: counted once per clip, it would weigh as many times too much). The standard
+    errors count the priors as the fit does (a clip's spin left to its prior is not
+    information its pixels lack), and the one-by-one fits, which each clip's own
+    estimates come from, are those of :func:`estim.fit_image`, priors and all.
+
+    Args:
+        scene: the scene, in whose world frame the cameras are calibrated.
+        clips: ``label -> ImageTracks`` (:func:`estim.read_image_tracks_csv`); every clip
+            seen by the same number of cameras.
+        shared, loss, steps, joint_steps, max_segments, devices, per_clip, progress: as
+            :func:`fit_clips`.
+        free: every fitted parameter; default what :func:`estim.fit_image` fits (shared
+            ones are added if missing).
+        restarts: as :func:`estim.fit_image` for the one-by-one fits.
+
+    Returns:
+        A :class:`PooledResult` whose units' fits are in pixels (``BallFit.unit == "px"``)
+        with their depth reports, and whose ``individual`` fits are the one-by-one fits.
+
+    Raises:
+        ValueError: fewer than two units, an unknown or unfitted shared name, clips seen
+            by different numbers of cameras, or what :func:`estim.fit_image` refuses
+            (named by the unit's label).
+    """
+    require_x64()
+    say = progress or (lambda msg: None)
+    units_of = [(label if len(tracks.balls) == 1 else f"{label}/{b}", b, tracks)
+                for label, tracks in clips.items() for b in tracks.balls]
+    shared = _shared_names([u[0] for u in units_of], shared)
+    n_cameras = sorted({len(tracks.cameras) for tracks in clips.values()})
+    if len(n_cameras) > 1:
+        raise ValueError(f"the clips are seen by {n_cameras} cameras: fitted together, every clip is seen by "
+                         "the same number of cameras (their clocks' offsets are each clip's own)")
+    free = registry.expand(default_image_free(scene, n_cameras[0]) if free is None else free)
+    free = tuple(free) + tuple(n for n in shared if n not in free)
+    individual, data, images, starts, units = {}, {}, {}, {}, []
+    for label, b, tracks in units_of:
+        say(f"one by one: {label}")
+        try:
+            result, ends = _fit_image_ends(scene, _without(tracks, b, []), free=free, fixed=None, loss=loss,
+                                           steps=steps, restarts=restarts, max_segments=max_segments, prior=None,
+                                           effects=False, progress=say)
+        except ValueError as err:
+            raise ValueError(f"{label}: {err}") from None
+        bf = individual[label] = result.balls[b]
+        alone = _without(tracks, b, ends[b])
+        ok = alone.valid(b)
+        t, at = np.unique(alone.t[b][ok], return_index=True)
+        data[label] = (t, np.asarray(bf.model_position)[ok][at])  # the 3-D path the joint fit starts from
+        images[label] = ImageRows(t=alone.t[b], uv=alone.uv[b], view=alone.view[b],
+                                  cameras=CameraArrays.of(alone.cameras), noise=bf.noise_m, initial=bf.initial)
+        starts[label] = {n: bf.values[n] for n in (*free, "t0")}
+        units.append(Clip(label=label, ball=b, t=t, position=data[label][1], source=tracks.source))
+    devices = list(jax.devices() if devices is None else devices)
+    # What the one-by-one fits ended on, as one batch of the same length (their values as
+    # starts: restarts would only leave them).
+    _, worked = _fit_all(scene, data, free=free, fixed=starts, loss=loss, steps=steps, restarts=0,
+                         max_segments=max_segments, progress=say, balls={u.label: u.ball for u in units},
+                         devices=devices, images=images, prior=None)
+    # The scene's priors on the shared values count once per ball, in its first unit.
+    seen, problems = set(), []
+    columns = [registry.NAMES.index(n) for n in shared]
+    for u, pr in zip(units, worked.problems, strict=True):
+        if pr.prior is not None and (u.group or u.ball) in seen:
+            weights = np.array(pr.prior)
+            weights[1, columns] = 0.0
+            pr = eqx.tree_at(lambda p: p.prior, pr, weights)
+        seen.add(u.group or u.ball)
+        problems.append(pr)
+    worked = dataclasses.replace(worked, problems=problems)
+    out = _together(scene, units, worked, FitResult(individual), shared, loss=loss, joint_steps=joint_steps,
+                    restarts=restarts, max_segments=max_segments, devices=devices, per_clip=per_clip, say=say)
+    camera_of = {label: tracks.cameras[0] for label, _, tracks in units_of}
+    for label, bf in out.clips.balls.items():
+        bf.depth = _depth_report(bf, camera_of[label])
+        if bf.depth["note"]:
+            bf.notes.append(bf.depth["note"])
+    return out
+
+
+def _shared_names(labels: list[str], shared: Sequence[str]) -> tuple[str, ...]:
+    """The shared parameters' components, checked, for a fit of the units ``labels``."""
+    if len(labels) < 2:
+        raise ValueError(f"a fit of shared parameters needs at least two clips, got {len(labels)}")
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"clip labels must be unique, got {labels}")
+    shared = registry.expand(shared)
+    unknown = [n for n in shared if n not in PARAMETERS]
+    if unknown:
+        raise ValueError(f"unknown shared parameter(s) {unknown}; the parameters are {PARAMETERS}")
+    if "t0" in shared:
+        raise ValueError("t0 is a clip's own time offset and cannot be shared")
+    return shared
+
+
+def _together(scene: Scene, clips: list[Clip], units, individual: FitResult, shared: tuple[str, ...], *, loss: str,
+              joint_steps: int, restarts: int, max_segments: int, devices, per_clip: bool, say) -> PooledResult:
+    """Steps 2 to 4 of the module docstring, from the one-by-one fits ``individual`` and
+    what they worked on (``units``, one per clip, in the order of ``clips``)."""
+    labels = [c.label for c in clips]
     free = units.free
     shared_idx = tuple(free.index(n) for n in shared)
     local_idx = tuple(k for k in range(len(free)) if k not in shared_idx)
@@ -568,6 +702,16 @@ def _shared_fit(group, members, labels, free, shared, theta, diag, problems, los
         J = np.where(at_bound[None, :], 0.0, J / np.where(at_bound, 1.0, dphi)[None, :]) / float(problems[i].scale)
         u = np.where(valid, r / float(problems[i].scale), 0.0)
         w = np.asarray(robust_weight(u, loss)) * valid
+        if problems[i].prior is not None:
+            # The priors' rows as the fit counted them ((phi - mean) / sd, weight 1): one
+            # camera's clip leaves its own spin to its prior, which must not be read as
+            # information the data lack.
+            mean, inv_sd = (np.asarray(a)[[PARAMETERS.index(n) for n in free]] for a in problems[i].prior)
+            rows = np.flatnonzero(inv_sd > 0)
+            J = np.concatenate([J, np.eye(len(free))[rows] * inv_sd[rows, None] * ~at_bound[None, :]])
+            u = np.concatenate([u, (phi[[PARAMETERS.index(n) for n in free]] - mean)[rows] * inv_sd[rows]])
+            w = np.concatenate([w, np.ones(rows.size)])
+            valid = np.concatenate([valid, np.zeros(rows.size, bool)])  # (not samples: no noise to read)
         H = J.T @ (w[:, None] * J)
         # K: the shared columns with the clip's own values profiled out, so that
         # K^T W K = H_aa - H_ab H_bb^-1 H_ba and K^T W u = g_a - H_ab H_bb^-1 g_b.
@@ -579,7 +723,7 @@ def _shared_fit(group, members, labels, free, shared, theta, diag, problems, los
         bread_w += float(np.sum(w * lever))
         bread_psi += float(np.sum(np.asarray(robust_curvature(u, loss)) * lever))
         _, _, keep = _inliers(diag, i, noises[i])
-        squares += float(np.sum(u[keep] ** 2))
+        squares += float(np.sum(u[: keep.size][keep] ** 2))
         n_inliers += int(keep.sum())
     M, B, q = np.array(M), np.array(B), np.array(q)
     C = len(members)

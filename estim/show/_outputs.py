@@ -38,13 +38,23 @@ def write_outputs(result: FitResult, data, out_dir, extra: dict | None = None) -
     return payload
 
 
-def write_pooled_outputs(result: PooledResult, data: dict, out_dir) -> dict:
-    """fit.json, the forest plot (forest.png) and the clips' tracks with the joint fit
-    (fit.png) of a fit of several clips into ``out_dir``."""
+def write_pooled_outputs(result: PooledResult, data: dict, out_dir, extra: dict | None = None) -> dict:
+    """fit.json and the forest plot (forest.png) of a fit of several clips into
+    ``out_dir``, and for clips in metres (``data``: ``label -> (t, position)``) their
+    tracks with the joint fit (fit.png); for clips in pixels (``data``: ``file label ->
+    ImageTracks``) each unit's pixels with its joint fit over them (``pixels-LABEL.png``,
+    as a single fit's pixels.png; a ``/`` in the label as ``-``)."""
     os.makedirs(out_dir, exist_ok=True)
     payload = result.to_json()
+    payload.update(extra or {})
     with open(os.path.join(out_dir, "fit.json"), "w") as f:
         dump(payload, f, indent=2)
     plot_forest(result, os.path.join(out_dir, "forest.png"))
-    plot_fit(data, result.clips, os.path.join(out_dir, "fit.png"))
+    if not all(isinstance(d, ImageTracks) for d in data.values()):
+        plot_fit(data, result.clips, os.path.join(out_dir, "fit.png"))
+        return payload
+    for unit in result.units:
+        tracks = data[unit.label.rpartition("/")[0] if unit.label not in data else unit.label]
+        plot_image_fit(tracks, FitResult({unit.ball: result.clips.balls[unit.label]}),
+                       os.path.join(out_dir, f"pixels-{unit.label.replace('/', '-')}.png"))
     return payload
