@@ -51,7 +51,7 @@ def test_shots_of_one_ball_share_their_restitution(tmp_path, capsys):
     shared = out["shared"]
     assert shared["n_clips"] == 3 and shared["group"] == "pingpong"
     assert abs(shared["e"] - E) < 3 * shared["stderr"]["e"] and abs(shared["e"] - E) < 0.04
-    assert out["cameras"][0]["name"] == "side" and set(out["left_out"]) == set()
+    assert out["cameras"][0]["name"] == "side" and out["left_out"] == {}
     for k, path in enumerate(paths):
         clip, alone = out["clips"][f"shot{k}"], out["individual"][f"shot{k}"]
         assert clip["e"] == shared["e"] and clip["converged"]
@@ -79,6 +79,11 @@ def test_image_clips_are_refused_with_a_reason(tmp_path, capsys):
         estim.fit_image_clips(scene, {"a": tracks})
     with pytest.raises(ValueError, match="t0 is a clip's own"):
         estim.fit_image_clips(scene, {"a": tracks, "b": tracks}, shared=("t0",))
+    # Clips that cannot be fitted alone are left out, each named with why; fewer than two
+    # left is an error that lists them.
+    short = _tracks((SIDE,), T[:5], _paths(scene)[0][:5], 2.0)
+    with pytest.raises(ValueError, match=r"got 0 that could be fitted; left out: a: .*only 5 rows.*; left out: b: "):
+        estim.fit_image_clips(scene, {"a": short, "b": short})
     two = _tracks((SIDE, SIDE), T, _paths(scene)[0], 2.0)
     with pytest.raises(ValueError, match=r"seen by \[1, 2\] cameras"):
         estim.fit_image_clips(scene, {"a": tracks, "b": two})

@@ -466,8 +466,9 @@ def fit_image_clips(
 
     Raises:
         ValueError: fewer than two units, an unknown or unfitted shared name, clips seen
-            by different numbers of cameras, or what :func:`estim.fit_image` refuses
-            (named by the unit's label).
+            by different numbers of cameras, or fewer than two units left that
+            :func:`estim.fit_image` can fit (one it refuses, too few rows say, is left out
+            and named with why in ``PooledResult.left_out``).
     """
     require_x64()
     say = progress or (lambda msg: None)
@@ -480,7 +481,7 @@ def fit_image_clips(
                          "the same number of cameras (their clocks' offsets are each clip's own)")
     free = registry.expand(default_image_free(scene, n_cameras[0]) if free is None else free)
     free = tuple(free) + tuple(n for n in shared if n not in free)
-    individual, data, images, starts, units = {}, {}, {}, {}, []
+    individual, data, images, starts, units, left_out = {}, {}, {}, {}, [], {}
     for label, b, tracks in units_of:
         say(f"one by one: {label}")
         try:
@@ -488,7 +489,11 @@ def fit_image_clips(
                                            steps=steps, restarts=restarts, max_segments=max_segments, prior=None,
                                            effects=False, progress=say)
         except ValueError as err:
-            raise ValueError(f"{label}: {err}") from None
+            # A clip that cannot be fitted alone (too few rows, ...) is left out, named, and
+            # reported (``PooledResult.left_out``), not a reason to stop the others' fit.
+            left_out[label] = str(err)
+            say(f"left out {label}: {err}")
+            continue
         bf = individual[label] = result.balls[b]
         alone = _without(tracks, b, ends[b])
         ok = alone.valid(b)
@@ -498,6 +503,9 @@ def fit_image_clips(
                                   cameras=CameraArrays.of(alone.cameras), noise=bf.noise_m, initial=bf.initial)
         starts[label] = {n: bf.values[n] for n in (*free, "t0")}
         units.append(Clip(label=label, ball=b, t=t, position=data[label][1], source=tracks.source))
+    if len(units) < 2:
+        raise ValueError(f"a fit of shared parameters needs at least two clips, got {len(units)} that could be "
+                         "fitted" + "".join(f"; left out: {k}: {v}" for k, v in left_out.items()))
     devices = list(jax.devices() if devices is None else devices)
     # What the one-by-one fits ended on, as one batch of the same length (their values as
     # starts: restarts would only leave them).
@@ -522,6 +530,7 @@ def fit_image_clips(
         bf.depth = _depth_report(bf, camera_of[label])
         if bf.depth["note"]:
             bf.notes.append(bf.depth["note"])
+    out.left_out = left_out
     return out
 
 
