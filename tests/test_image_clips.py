@@ -92,3 +92,6 @@ def test_image_clips_are_refused_with_a_reason(tmp_path, capsys):
     code = main(["fit", str(tmp_path / "a.csv"), str(tmp_path / "a.csv"), "--camera", str(tmp_path / "side.json"),
                  "--scene", SCENE, "--shared", "e", "--distributed"])
     assert code == 2 and "--distributed with --camera" in capsys.readouterr().err
+    code = main(["fit", str(tmp_path / "a.csv"), str(tmp_path / "a.csv"), "--camera", str(tmp_path / "side.json"),
+                 "--scene", SCENE, "--shared", "e", "--prior", "e=0.9,0.02"])
+    assert code == 2 and "take the scene's priors" in capsys.readouterr().err

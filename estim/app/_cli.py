@@ -857,6 +857,9 @@ def _cmd_fit(args) -> int:
     _check_pixel_options(args)
     say = progress()
     if args.shared is not None:
+        if args.prior and args.camera:
+            raise UsageError("--prior with --shared --camera: image clips fitted together take the scene's "
+                             "priors (a shared value's once); fit one file to give a prior of your own")
         if args.prior:
             raise UsageError("--prior with --shared: a fit of several clips takes no priors (the scene's are "
                              "dropped too: many clips fix what one cannot); fit one file to use a prior")
