@@ -33,7 +33,8 @@ def _paths(scene):
 def test_shots_of_one_ball_share_their_restitution(tmp_path, capsys):
     # estim's own physics (air, the friction law's bounce), one camera from the side, 25
     # fps, 2 px of noise: each shot alone reads e to a few hundredths; together they read
-    # one e, through the command line.
+    # one e, through the command line. A prior of one's own on e (in place of the scene's
+    # 0.88 +- 0.05), 0.08 below the truth: the pixels of three shots move e back to it.
     scene = estim.load_scene(SCENE)
     paths = _paths(scene)
     files = []
@@ -45,7 +46,7 @@ def test_shots_of_one_ball_share_their_restitution(tmp_path, capsys):
                                              for t, (u, v) in zip(tracks.t["pingpong"], tracks.uv["pingpong"], strict=True)))
     (tmp_path / "side.json").write_text(json.dumps(SIDE.to_json()))
     code = main(["fit", *files, "--camera", str(tmp_path / "side.json"), "--scene", SCENE, "--shared", "e", "--json",
-                 "--out", str(tmp_path / "out")])
+                 "--prior", "e=0.80,0.10", "--out", str(tmp_path / "out")])
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     shared = out["shared"]
@@ -59,17 +60,36 @@ def test_shots_of_one_ball_share_their_restitution(tmp_path, capsys):
         fitted = np.asarray(clip["fitted"]["position"])
         assert np.mean(np.linalg.norm(fitted - path, axis=1)) < 0.03
         assert 1.0 < clip["rms_px"] < 2.5 and clip["depth"]["fixed"]  # 2 px of noise
-        # The scene's priors stay: on each shot's own spin, and alone on e.
-        assert "spin_x" in clip["prior"] and "e" in alone["prior"]
+        # The scene's priors stay (on each shot's own spin), and alone each shot takes the
+        # prior given on e.
+        assert "spin_x" in clip["prior"] and alone["prior"]["e"] == {"mean": 0.80, "sd": 0.10}
         # With one shared parameter a clip's own estimate is its fit alone.
         assert shared["per_clip"]["e"][f"shot{k}"]["value"] == alone["e"]
     # Together, the prior on the shared e counts once (counted once per clip it would
     # weigh three times).
-    assert sum("e" in clip["prior"] for clip in out["clips"].values()) == 1
+    assert [clip["prior"]["e"] for clip in out["clips"].values() if "e" in clip["prior"]] == [{"mean": 0.80, "sd": 0.10}]
     own = [alone["e"] for alone in out["individual"].values()]
     assert shared["stderr"]["e"] < max(alone["stderr"]["e"] for alone in out["individual"].values())
     assert min(own) < shared["e"] < max(own)
     assert all((tmp_path / "out" / name).is_file() for name in ("fit.json", "forest.png", "pixels-shot0.png"))
+
+
+@pytest.mark.slow
+def test_the_joint_fit_leaves_its_start_where_its_first_steps_are_refused():
+    """The three shots with the scene's priors: from the median start, the clips' loosely
+    fixed spins and mu made the joint steps raise the loss until the damping had grown
+    (the first ten refused); the joint fit then went on from there (its loss 16.70 ->
+    16.49, settled), where it had stopped at its start, called converged, its shared e
+    the median of the shots' own."""
+    scene = estim.load_scene(SCENE)
+    clips = {f"shot{k}": _tracks((SIDE,), T, path, 2.0, seed=10 + k) for k, path in enumerate(_paths(scene))}
+    res = estim.fit_image_clips(scene, clips, shared=("e",), per_clip=False)
+    assert res.converged
+    history = res.clips.balls["shot0"].loss_history  # the ball's joint loss, iteration by iteration
+    assert history[-1] < history[0] - 0.1
+    e, stderr = res.shared["pingpong"].values["e"], res.shared["pingpong"].stderr["e"]
+    assert e != np.median([bf.values["e"] for bf in res.individual.balls.values()])
+    assert abs(e - E) < 3 * stderr and abs(e - E) < 0.04
 
 
 def test_image_clips_are_refused_with_a_reason(tmp_path, capsys):
@@ -92,6 +112,3 @@ def test_image_clips_are_refused_with_a_reason(tmp_path, capsys):
     code = main(["fit", str(tmp_path / "a.csv"), str(tmp_path / "a.csv"), "--camera", str(tmp_path / "side.json"),
                  "--scene", SCENE, "--shared", "e", "--distributed"])
     assert code == 2 and "--distributed with --camera" in capsys.readouterr().err
-    code = main(["fit", str(tmp_path / "a.csv"), str(tmp_path / "a.csv"), "--camera", str(tmp_path / "side.json"),
-                 "--scene", SCENE, "--shared", "e", "--prior", "e=0.9,0.02"])
-    assert code == 2 and "take the scene's priors" in capsys.readouterr().err

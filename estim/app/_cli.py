@@ -857,12 +857,10 @@ def _cmd_fit(args) -> int:
     _check_pixel_options(args)
     say = progress()
     if args.shared is not None:
-        if args.prior and args.camera:
-            raise UsageError("--prior with --shared --camera: image clips fitted together take the scene's "
-                             "priors (a shared value's once); fit one file to give a prior of your own")
-        if args.prior:
-            raise UsageError("--prior with --shared: a fit of several clips takes no priors (the scene's are "
-                             "dropped too: many clips fix what one cannot); fit one file to use a prior")
+        if args.prior and not args.camera:
+            raise UsageError("--prior with --shared: a fit of several clips in metres takes no priors (the "
+                             "scene's are dropped too: many clips fix what one cannot); fit one file to use a "
+                             "prior (image clips, --camera, take them)")
         if args.effects:
             raise UsageError("--effects with --shared: the effect sizes are those of one track; fit one file "
                              "to see them")
