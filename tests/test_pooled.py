@@ -150,7 +150,9 @@ def test_sharded_and_distributed_match_one_device(tmp_path):
                   "--distributed", "--out", str(tmp_path / f"out{k}")] for k in range(2)]
     runs = []
     for k, (command, (out, err)) in enumerate(zip(commands, logs, strict=True)):
-        extra = {"XLA_FLAGS": f"--xla_force_host_platform_device_count={4 if k == 0 else 2}"}
+        # (Added to the suite's XLA_FLAGS, not in their place: tests/conftest.py.)
+        devices = f"--xla_force_host_platform_device_count={4 if k == 0 else 2}"
+        extra = {"XLA_FLAGS": f"{env.get('XLA_FLAGS', '')} {devices}".strip()}
         if k:
             extra.update(JAX_NUM_PROCESSES="2", JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_PROCESS_ID=str(k - 1))
         with open(out, "w") as o, open(err, "w") as e:
