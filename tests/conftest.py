@@ -25,10 +25,10 @@ import uuid
 # not set its own level: most of its time is XLA compiling programs that run a few times
 # (the JAX path's Jacobians it checks the native kernels against, reverse-mode helpers, fits
 # of a few calls). Programs that set a level (estim._config: the closed form's 1, the ODE
-# fit's 0 and 1) keep it: a program's own options take precedence over XLA_FLAGS. LLVM's
-# optimisation levels do not change IEEE results (XLA:CPU compiles without fast-math), and
-# the whole suite passes at either level, the native kernels' bit-for-bit comparisons
-# included (session 65, one run each on the 2-core machine: 854 passed in 1692 s at level
+# fit's 0 and 1) are meant to keep it, jit's compiler_options being applied over the
+# defaults XLA_FLAGS sets (not measured here). The level is LLVM's optimisation, not
+# fast-math (off by default on XLA:CPU), and the whole suite passes at either level, the
+# native kernels' bit-for-bit comparisons included (session 65, one run each on the 2-core machine: 854 passed in 1692 s at level
 # 0, the tests' summed time 3352 s; 1988 s and 3932 s at XLA's default the session before).
 # Set before JAX starts its backend; subprocesses (the command line, the notebooks) inherit
 # it. ESTIM_TESTS_XLA_DEFAULT=1 runs the suite at XLA's default instead.
